@@ -1,0 +1,282 @@
+"""Subjects for the simulator: realistic anatomy, scoliotic deformation, sway.
+
+Two bodies: the CC0 MakeHuman hm08 base mesh (whole body, scaled to an
+adolescent, smoothed by Loop subdivision) and a parametric torso of
+superelliptic sections. Both stand at the rig centre, feet on the floor
+(world Z = 0), facing -Y (their back towards +Y); the patient's left is +X.
+
+A scoliotic curve is applied along the spine line: lateral deviation and
+axial rotation of each horizontal section about the spine, plus a rib
+prominence on the convex side. Sign convention of the truth: lateral
+deviation positive towards the patient's right (-X); axial rotation positive
+when the vertebral bodies turn their front towards the patient's right, which
+pushes the right back posteriorly (a right rib hump).
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .config import SubjectConfig
+
+DEFAULT_MESH = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "makehuman-hm08-base.obj"
+
+
+@dataclass(frozen=True)
+class Body:
+    """A subject at rest (no curve, no sway), in the world frame (mm)."""
+
+    name: str
+    vertices: np.ndarray  # (N, 3)
+    triangles: np.ndarray  # (M, 3) int
+    torso_faces: np.ndarray  # (M,) bool: the torso that the scanner must measure
+    spine: np.ndarray  # (K, 3) spine line from sacrum to C7, increasing Z
+    z_sacrum: float
+    z_c7: float
+
+
+def mesh_path() -> Path:
+    """Where the MakeHuman mesh lives: ``TORSOSCAN_MAKEHUMAN_OBJ`` or ``../shared/data``."""
+    import os
+
+    env = os.environ.get("TORSOSCAN_MAKEHUMAN_OBJ")
+    return Path(env) if env else DEFAULT_MESH
+
+
+def _read_obj_groups(path: Path):
+    vertices, faces, cur = [], {}, None
+    with open(path, encoding="utf-8") as fh:
+        for line in fh:
+            if line.startswith("v "):
+                vertices.append(line.split()[1:4])
+            elif line.startswith("g "):
+                cur = line.split()[1]
+            elif line.startswith("f "):
+                faces.setdefault(cur, []).append([int(t.split("/")[0]) - 1 for t in line.split()[1:]])
+    return np.asarray(vertices, dtype=float), faces
+
+
+def _segment_distance(P, a, b):
+    ab = b - a
+    t = np.clip(((P - a) @ ab) / (ab @ ab), 0.0, 1.0)
+    return np.linalg.norm(P - (a + t[:, None] * ab), axis=1)
+
+
+@functools.lru_cache(maxsize=4)
+def load_makehuman(stature_mm: float = 1550.0, subdivisions: int = 2, path: str | None = None) -> Body:
+    """The MakeHuman body scaled to ``stature_mm``, Loop-subdivided ``subdivisions`` times."""
+    import open3d as o3d
+
+    src = Path(path) if path else mesh_path()
+    if not src.exists():
+        raise FileNotFoundError(f"{src}: the MakeHuman mesh is missing (set TORSOSCAN_MAKEHUMAN_OBJ)")
+    V, groups = _read_obj_groups(src)
+    if "body" not in groups:
+        raise ValueError(f"{src}: no group 'body'")
+    quads = np.asarray([f for f in groups["body"] if len(f) == 4])
+    tris = [np.asarray([f for f in groups["body"] if len(f) == 3], dtype=int).reshape(-1, 3)]
+    tris = np.vstack([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]], *tris])
+    used = np.unique(tris)
+    remap = np.full(len(V), -1)
+    remap[used] = np.arange(len(used))
+
+    def joint(name):
+        idx = np.unique(np.concatenate([np.asarray(f) for f in groups[f"joint-{name}"]]))
+        return V[idx].mean(axis=0)
+
+    # mesh: x = body's left, y up, z front  ->  world: X left, Y back, Z up
+    to_world = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
+    body_v = V[used]
+    floor = body_v[:, 1].min()
+    scale = stature_mm / (body_v[:, 1].max() - floor)
+
+    def world(p):
+        p = np.atleast_2d(p) - [0.0, floor, 0.0]
+        return (p @ to_world.T) * scale
+
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(world(body_v)),
+                                     o3d.utility.Vector3iVector(remap[tris]))
+    if subdivisions:
+        mesh = mesh.subdivide_loop(subdivisions)
+    vertices = np.asarray(mesh.vertices).copy()
+    triangles = np.asarray(mesh.triangles).copy()
+
+    spine_names = ["pelvis", "spine-4", "spine-3", "spine-2", "spine-1", "neck"]
+    spine = world(np.array([joint(n) for n in spine_names]))
+    spine[:, 0] = 0.0  # the mesh is symmetric; keep the spine in the mid-sagittal plane
+    z_sac, z_c7 = spine[0, 2], spine[-1, 2]
+
+    # the torso: between the sacral point and C7, arms excluded
+    centroids = vertices[triangles].mean(axis=1)
+    arm = np.zeros(len(centroids), dtype=bool)
+    for side in ("l", "r"):
+        s, e, h = (world(joint(f"{side}-{n}"))[0] for n in ("shoulder", "elbow", "hand"))
+        radius = 0.62 * scale  # upper-arm radius with margin (mesh units)
+        arm |= _segment_distance(centroids, s, e) < radius
+        arm |= _segment_distance(centroids, e, h) < radius
+        arm |= np.abs(centroids[:, 0]) > abs(s[0]) + 0.1 * scale
+    torso = (centroids[:, 2] > z_sac - 30.0) & (centroids[:, 2] < z_c7) & ~arm
+    return Body("makehuman", vertices, triangles, torso, spine, float(z_sac), float(z_c7))
+
+
+def make_parametric(stature_mm: float = 1550.0, n_around: int = 360, n_up: int = 260) -> Body:
+    """A closed parametric torso: superelliptic sections, spinal furrow, scapulae."""
+    k = stature_mm / 1550.0
+    z_sac, z_c7 = 828.0 * k, 1308.0 * k
+    z0, z1 = z_sac - 90.0 * k, z_c7 + 70.0 * k
+    z = np.linspace(z0, z1, n_up)
+    s = (z - z_sac) / (z_c7 - z_sac)
+    # half-width and half-depths (mm) against the spine level s, smooth in s
+    knots = np.array([-0.2, 0.0, 0.35, 0.7, 0.92, 1.02, 1.2])
+    half_w = np.interp(s, knots, [168, 160, 122, 138, 165, 90, 55]) * k
+    back_d = np.interp(s, knots, [92, 88, 70, 82, 78, 60, 45]) * k
+    front_d = np.interp(s, knots, [95, 90, 88, 102, 92, 60, 45]) * k
+    t = np.linspace(0, 2 * np.pi, n_around, endpoint=False)
+    c, sn = np.cos(t), np.sin(t)
+    e = 2.0 / 2.6  # superellipse exponent 2.6: squarer than an ellipse
+    x = half_w[:, None] * np.sign(c) * np.abs(c) ** e
+    depth = np.where(sn[None, :] > 0, back_d[:, None], front_d[:, None])
+    y = depth * np.sign(sn) * np.abs(sn) ** e
+    # spinal furrow and scapulae on the back (+Y)
+    back = np.clip(sn, 0, None)[None, :] ** 2
+    furrow = 4.0 * k * np.exp(-0.5 * (x / (14.0 * k)) ** 2) * back * np.clip((s[:, None] - 0.05) / 0.2, 0, 1)
+    scap = sum(6.0 * k * np.exp(-0.5 * (((x - sx * k) / (35 * k)) ** 2 + ((s[:, None] - 0.8) / 0.09) ** 2))
+               for sx in (-80.0, 80.0)) * back
+    y = y - furrow + scap
+    grid = np.stack([x, y, np.broadcast_to(z[:, None], x.shape)], axis=-1)
+    vertices = grid.reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(n_up - 1), np.arange(n_around), indexing="ij")
+    a = i * n_around + j
+    b = i * n_around + (j + 1) % n_around
+    c_, d = a + n_around, b + n_around
+    quads = np.stack([a, b, d, c_], axis=-1).reshape(-1, 4)
+    # outward normals: vertices go counter-clockwise seen from above, z grows
+    tris = np.vstack([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    # caps
+    bottom = len(vertices)
+    top = bottom + 1
+    vertices = np.vstack([vertices, [0, 0, z0], [0, 0, z1]])
+    ring0 = np.arange(n_around)
+    ring1 = (n_up - 1) * n_around + ring0
+    caps = np.vstack([
+        np.column_stack([np.full(n_around, bottom), (ring0 + 1) % n_around, ring0]),
+        np.column_stack([np.full(n_around, top), ring1, (ring1 - ring1[0] + 1) % n_around + ring1[0]]),
+    ])
+    triangles = np.vstack([tris, caps])
+    centroids = vertices[triangles].mean(axis=1)
+    torso = (centroids[:, 2] > z_sac - 30.0 * k) & (centroids[:, 2] < z_c7)
+    torso[len(tris):] = False
+    spine_z = np.linspace(z_sac, z_c7, 6)
+    spine = np.column_stack([np.zeros(6), np.interp(spine_z, z, back_d) - 55.0 * k, spine_z])
+    return Body("parametric", vertices, triangles, torso, spine, float(z_sac), float(z_c7))
+
+
+def load_body(cfg: SubjectConfig) -> Body:
+    if cfg.torso == "makehuman":
+        return load_makehuman(cfg.stature_mm)
+    if cfg.torso == "parametric":
+        return make_parametric(cfg.stature_mm)
+    raise ValueError(f"unknown torso {cfg.torso!r}: choose 'makehuman' or 'parametric'")
+
+
+# --- the curve ----------------------------------------------------------------
+
+def _bump(s, lo, apex, hi):
+    """Smooth bump: 1 at ``apex``, 0 outside (lo, hi), cos^2 flanks of their own widths."""
+    s = np.asarray(s, float)
+    left = np.clip((apex - s) / max(apex - lo, 1e-9), 0, 1)
+    right = np.clip((s - apex) / max(hi - apex, 1e-9), 0, 1)
+    return np.cos(0.5 * np.pi * np.where(s < apex, left, right)) ** 2
+
+
+def curve_profiles(s, cfg: SubjectConfig, rotation_deg: float, lateral_mm: float):
+    """Lateral deviation (mm, +right) and axial rotation (deg, +right) at spine levels ``s``."""
+    if cfg.curve == "C":
+        main = _bump(s, 0.0, cfg.thoracic_apex, 1.0)
+        shape = main
+    elif cfg.curve == "S":
+        main = _bump(s, 0.38, cfg.thoracic_apex, 1.0)
+        secondary = _bump(s, 0.0, cfg.lumbar_apex, 0.42)
+        shape = main - cfg.secondary_ratio * secondary
+    else:
+        raise ValueError(f"unknown curve pattern {cfg.curve!r}: choose 'C' or 'S'")
+    return lateral_mm * shape, rotation_deg * shape
+
+
+@dataclass(frozen=True)
+class Posture:
+    """What differs between two captures of a subject."""
+
+    rotation_deg: float  # axial rotation at the main apex
+    lateral_mm: float  # lateral deviation at the main apex
+    breathing: float  # -0.5 .. 0.5 of the full chest excursion
+    growth: float  # relative stature change against the rest body
+    R: np.ndarray  # placement and sway: rotation about the rig centre on the floor
+    t: np.ndarray  # and translation (mm)
+
+    def to_dict(self):
+        return {"rotation_deg": self.rotation_deg, "lateral_mm": self.lateral_mm,
+                "breathing": self.breathing, "growth": self.growth,
+                "R": self.R.tolist(), "t": self.t.tolist()}
+
+
+def pose_body(body: Body, cfg: SubjectConfig, posture: Posture):
+    """Vertices of the posed subject (N, 3), its spine line (K, 3) and C7/sacrum points.
+
+    Order: growth (about the feet), curve (per section about the spine),
+    breathing, then rigid placement and sway.
+    """
+    g = posture.growth
+    scale = np.array([1 + g / 2, 1 + g / 2, 1 + g])
+    V = body.vertices * scale
+    spine = body.spine * scale
+    z_sac, z_c7 = body.z_sacrum * (1 + g), body.z_c7 * (1 + g)
+    s = (V[:, 2] - z_sac) / (z_c7 - z_sac)
+    lateral, rot = curve_profiles(s, cfg, posture.rotation_deg, posture.lateral_mm)
+    sx = np.interp(V[:, 2], spine[:, 2], spine[:, 0])
+    sy = np.interp(V[:, 2], spine[:, 2], spine[:, 1])
+    rel = V[:, :2] - np.column_stack([sx, sy])
+    # arms and hands move with the section they hang from, as a translation
+    limit = 150.0 * (1 + g / 2)
+    rel_c = np.column_stack([np.clip(rel[:, 0], -limit, limit), rel[:, 1]])
+    phi = -np.radians(rot)  # +rotation (right) turns clockwise seen from above
+    c, sn = np.cos(phi), np.sin(phi)
+    turned = np.column_stack([c * rel_c[:, 0] - sn * rel_c[:, 1], sn * rel_c[:, 0] + c * rel_c[:, 1]])
+    delta = turned - rel_c
+    delta[:, 0] -= lateral  # + lateral is the patient's right, -X
+    # rib prominence on the convex side of the back
+    convex = -np.sign(rot) * rel_c[:, 0]  # distance towards the convex side (mm)
+    hump = cfg.hump_mm_per_deg * np.abs(rot) * np.exp(-0.5 * ((convex - 70.0) / 40.0) ** 2)
+    hump *= np.clip(rel_c[:, 1] / 40.0, 0, 1)  # back only
+    delta[:, 1] += hump
+    # breathing: the chest wall moves along its horizontal outward direction
+    chest = _bump(s, 0.3, 0.68, 1.02)
+    r = np.linalg.norm(rel_c, axis=1) + 1e-9
+    outward = rel_c / r[:, None]
+    front_weight = 1.0 / 3.0 + (2.0 / 3.0) * np.clip(-outward[:, 1], 0, 1)
+    excursion = posture.breathing * cfg.breathing_mm * chest * front_weight
+    delta += outward * excursion[:, None]
+    V = V.copy()
+    V[:, :2] += delta
+    # the spine line follows the curve
+    ss = (spine[:, 2] - z_sac) / (z_c7 - z_sac)
+    lat_s, _ = curve_profiles(ss, cfg, posture.rotation_deg, posture.lateral_mm)
+    spine = spine.copy()
+    spine[:, 0] -= lat_s
+    V = V @ posture.R.T + posture.t
+    spine = spine @ posture.R.T + posture.t
+    return V, spine
+
+
+def skin_albedo(vertices_rest: np.ndarray, cfg: SubjectConfig, rng: np.random.Generator) -> np.ndarray:
+    """Per-vertex skin albedo: mean ``cfg.albedo`` with slow variation (40–200 mm waves)."""
+    waves = rng.normal(size=(6, 3))
+    waves /= np.linalg.norm(waves, axis=1, keepdims=True)
+    lengths = rng.uniform(40.0, 200.0, 6)
+    phases = rng.uniform(0, 2 * np.pi, 6)
+    field = np.sin(vertices_rest @ (waves / lengths[:, None]).T * 2 * np.pi + phases).sum(axis=1) / np.sqrt(3.0)
+    return cfg.albedo * (1.0 + cfg.albedo_variation * np.clip(field, -2.5, 2.5))

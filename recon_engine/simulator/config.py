@@ -1,0 +1,161 @@
+"""Parameters of a simulated scenario, with commented defaults and two presets.
+
+Lengths in mm, angles in degrees unless a name says otherwise. The defaults
+describe the paper's rig (Detchev, Habib and Chang): four arms of five
+low-cost cameras and one pattern projector each around a standing adolescent.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, replace
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    width: int = 3000  # px
+    height: int = 2000  # px
+    pixel_size_mm: float = 0.0047  # 4.7 um
+    focal_mm: float = 35.0  # nominal; each camera's true value differs
+    focal_spread: float = 0.015  # relative 1-sigma of true against nominal focal length
+    principal_point_sigma_px: float = 15.0  # 1-sigma offset of the principal point (at 3000 px)
+    k1_range: tuple = (-0.25, 0.10)  # uniform; normalized-coordinate Brown–Conrady terms
+    k2_sigma: float = 0.25
+    k3_sigma: float = 0.0
+    p_sigma: float = 3e-4  # decentring, each of p1 and p2
+    f_number: float = 5.6  # aperture: sets the depth of field
+    focus_mm: float = 2350.0  # focused distance (about the near torso surface)
+    blur_sigma_px: float = 0.5  # lens aberrations and pixel crosstalk (at 3000 px)
+    supersample: int = 2  # rays per pixel along each axis
+    full_well_e: float = 10000.0  # electrons at 255 DN
+    read_noise_e: float = 5.0
+    black_level_dn: float = 2.0
+    prnu: float = 0.01  # photo-response non-uniformity, relative 1-sigma, fixed per camera
+    vignetting: bool = True  # natural cos^4 fall-off
+
+
+@dataclass(frozen=True)
+class ProjectorConfig:
+    width: int = 1024  # projector px
+    height: int = 768
+    distance_mm: float = 1700.0  # from the rig centre
+    height_offset_mm: float = 350.0  # above the torso centre, clear of the cameras' views
+    coverage_mm: float = 1000.0  # width of the lit frame at distance_mm
+    focus_mm: float = 1550.0
+    blur_sigma_px: float = 0.35  # optics at best focus (projector px)
+    defocus_px_per_mm: float = 0.0015  # defocus sigma per mm away from focus (px of a 1024-px projector; f/2 lens)
+    black_level: float = 0.02  # an unlit projector pixel still emits this fraction (contrast 50:1)
+    power: float = 1.0  # irradiance of a lit pixel at distance_mm, normal incidence
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    serial: str = "RIG-SIM-0001"
+    arms: tuple = ("A", "B", "C", "D")
+    cameras_per_arm: int = 5
+    first_arm_azimuth_deg: float = 45.0  # arm A views the back-left quadrant
+    camera_radius_mm: float = 2500.0  # from the rig centre
+    camera_spacing_mm: float = 800.0  # along the arc between neighbours
+    camera_height_sigma_mm: float = 40.0  # mounting scatter about the torso centre height
+    aim_sigma_mm: float = 30.0  # where each camera points, about the torso centre
+    roll_sigma_deg: float = 1.5
+    arm_rotation_max_deg: float = 1.0  # swing of arms B, C, D about the vertical at each capture
+    arm_translation_max_mm: float = 4.0
+    arm_tilt_max_deg: float = 0.05
+
+
+@dataclass(frozen=True)
+class SubjectConfig:
+    torso: str = "makehuman"  # or "parametric"
+    stature_mm: float = 1550.0  # an adolescent
+    curve: str = "S"  # "C" (one thoracolumbar curve) or "S" (right thoracic, left lumbar)
+    thoracic_apex: float = 0.62  # apex level as a fraction sacrum (0) -> C7 (1): about T8
+    lumbar_apex: float = 0.22  # about L2
+    lateral_mm: float = 12.0  # lateral deviation of the spine at the main apex (towards the patient's right)
+    rotation_deg: float = 10.0  # axial rotation at the main apex (raises the rib hump)
+    secondary_ratio: float = 0.7  # the lumbar curve of an S, relative to the thoracic one
+    hump_mm_per_deg: float = 0.3  # extra posterior rib prominence on the convex side
+    albedo: float = 0.5  # skin, mean
+    albedo_variation: float = 0.08  # relative amplitude of the slow variation
+    subsurface_mm: float = 0.35  # light diffusing in skin blurs the projected pattern (1-sigma)
+    sway_tilt_deg: float = 0.5  # posture sway between captures, max
+    sway_yaw_deg: float = 1.5
+    sway_shift_mm: float = 5.0
+    breathing_mm: float = 3.0  # chest-wall excursion at the front, max; the back moves a third
+    visit_yaw_deg: float = 5.0  # placement in the rig at a new visit, max
+    visit_shift_mm: float = 20.0
+    progression_deg: float = 5.0  # axial rotation added at the later visit
+    growth: float = 0.012  # relative stature growth at the later visit
+
+
+@dataclass(frozen=True)
+class TestFieldConfig:
+    name: str = "tower-sim"
+    aruco_dictionary: str = "DICT_4X4_1000"
+    sides: int = 8  # octagonal tower
+    circumradius_mm: float = 450.0
+    bottom_mm: float = 740.0  # lowest marker row's lower edge above the floor
+    columns: int = 3  # markers per face, across
+    rows: int = 6  # markers per face, up
+    marker_mm: float = 70.0
+    gap_mm: float = 30.0  # white margin between markers and around them
+    sigma_mm: float = 0.05  # survey precision of one coordinate
+    poses: int = 4
+    pose_yaw_deg: float = 22.5  # turn between consecutive poses
+    pose_shift_mm: float = 120.0  # max
+    pose_lift_mm: float = 60.0  # max
+    pose_tilt_deg: float = 1.5  # max
+    ambient: float = 0.55  # room light, relative to a lit projector pixel
+    key_light: float = 0.45  # a soft light from above and behind the cameras
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    wall_radius_mm: float = 3400.0  # dim room wall beyond the rig
+    wall_albedo: float = 0.25
+    floor_albedo: float = 0.2
+    torso_ambient: float = 0.04  # room light left on during a torso capture
+
+
+@dataclass(frozen=True)
+class ScenarioConfig:
+    """Everything that defines one simulated scenario; the seed makes it repeatable."""
+
+    preset: str = "paper"
+    seed: int = 0
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    projector: ProjectorConfig = field(default_factory=ProjectorConfig)
+    rig: RigConfig = field(default_factory=RigConfig)
+    subject: SubjectConfig = field(default_factory=SubjectConfig)
+    testfield: TestFieldConfig = field(default_factory=TestFieldConfig)
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    # torso captures: (name, visit index); visit 0 is the baseline, visit 1 the
+    # later visit with progression. Two captures of one visit differ in sway and breathing.
+    captures: tuple = (("visit0-a", 0), ("visit0-b", 0), ("visit1-a", 1))
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def preset(name: str, **overrides) -> ScenarioConfig:
+    """A named preset: ``"paper"`` (the paper's rig at full resolution) or ``"tiny"``.
+
+    ``tiny`` keeps the geometry, the optics and the noise of ``paper`` but images
+    of 480 x 320 px, with the pattern and blur scaled so that the projected
+    pattern covers as many camera pixels as at paper scale: it renders a whole
+    scenario in seconds, for tests.
+    """
+    if name == "paper":
+        cfg = ScenarioConfig(preset="paper")
+    elif name == "tiny":
+        scale = 480 / 3000
+        cam = CameraConfig(
+            width=480, height=320, pixel_size_mm=0.0047 / scale,
+            principal_point_sigma_px=15.0 * scale,
+        )
+        proj = ProjectorConfig(width=168, height=126)
+        tf = TestFieldConfig(poses=3)
+        cfg = ScenarioConfig(preset="tiny", camera=cam, projector=proj, testfield=tf,
+                             captures=(("visit0-a", 0),))
+    else:
+        raise ValueError(f"unknown preset {name!r}: choose 'tiny' or 'paper'")
+    return replace(cfg, **overrides) if overrides else cfg

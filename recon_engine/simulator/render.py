@@ -1,0 +1,269 @@
+"""Physically based image formation for the simulated rig.
+
+For every pixel, ``supersample``² rays are traced through the camera's own
+lens distortion (each sub-pixel position is undistorted exactly to its ray)
+into an Open3D ``RaycastingScene``. At each hit: smooth (interpolated) normal,
+albedo (slowly varying skin, printed markers, dim walls), and irradiance from
+ambient room light, an optional key light and every pattern projector that
+sees the point (a shadow ray decides), with Lambert's cosine, inverse-square
+fall-off, projector defocus and the blur of light diffusing in skin. The
+sub-samples are averaged (pixel integration), then the camera applies
+depth-dependent defocus, lens blur, cos⁴ vignetting, photo-response
+non-uniformity, shot and read noise and 8-bit quantization.
+
+Everything is vectorized over rays; the only Python loops run over chunks of
+image rows, projectors and blur levels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import open3d as o3d
+
+from ..camera import Camera, pixel_to_normalized
+from ..imaging import sample_bilinear
+from .config import CameraConfig, ProjectorConfig
+from .testfield import Tower, tower_albedo
+
+RAYS_PER_CHUNK = 1_500_000  # bounds the memory of one ray-casting call
+SHADOW_EPS_MM = 1.0  # a shadow-ray hit this close before the point still lights it
+
+
+@dataclass
+class Surface:
+    """One object of the scene, in world coordinates (mm)."""
+
+    kind: str  # "skin", "tower", "wall" or "floor"
+    vertices: np.ndarray
+    triangles: np.ndarray
+    albedo: np.ndarray | None = None  # per vertex; None for the tower (printed)
+    tower: Tower | None = None
+    pose: tuple | None = None  # tower: (R, t) with X_world = R @ X_tower + t
+    normals: np.ndarray = field(init=False)
+
+    def __post_init__(self):
+        mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(self.vertices),
+                                         o3d.utility.Vector3iVector(self.triangles))
+        mesh.compute_vertex_normals()
+        self.normals = np.asarray(mesh.vertex_normals).copy()
+
+
+@dataclass(frozen=True)
+class Lighting:
+    ambient: float
+    key: float = 0.0
+    key_direction: tuple = (0.3, -0.2, 1.0)  # towards the key light
+    projectors: tuple = ()  # rig.Projector
+    projector_cfg: ProjectorConfig | None = None
+
+
+class Scene:
+    """A ray-casting scene of surfaces, with shading lookups per hit."""
+
+    def __init__(self, surfaces: list[Surface]):
+        self.surfaces = surfaces
+        self.raycast = o3d.t.geometry.RaycastingScene()
+        for s in surfaces:
+            mesh = o3d.t.geometry.TriangleMesh()
+            mesh.vertex.positions = o3d.core.Tensor(s.vertices.astype(np.float32))
+            mesh.triangle.indices = o3d.core.Tensor(s.triangles.astype(np.int32))
+            self.raycast.add_triangles(mesh)
+
+    def cast(self, origins: np.ndarray, directions: np.ndarray) -> dict:
+        """First hits of rays (N, 3) from ``origins`` (N, 3) or (3,) along unit ``directions``."""
+        n = len(directions)
+        origins = np.broadcast_to(np.asarray(origins, np.float32), (n, 3))
+        rays = np.hstack([origins, directions.astype(np.float32)])
+        out = {k: [] for k in ("t_hit", "geometry_ids", "primitive_ids", "primitive_uvs")}
+        for start in range(0, n, RAYS_PER_CHUNK):
+            r = self.raycast.cast_rays(o3d.core.Tensor(rays[start:start + RAYS_PER_CHUNK]))
+            for k in out:
+                out[k].append(r[k].numpy())
+        return {k: np.concatenate(v) if v else np.zeros(0) for k, v in out.items()}
+
+    def distance(self, origins, directions) -> np.ndarray:
+        """Distance (mm) to the first hit along each ray; inf where nothing is hit."""
+        return self.cast(origins, directions)["t_hit"].astype(float)
+
+    def visible(self, viewpoint, points, eps_mm: float = SHADOW_EPS_MM) -> np.ndarray:
+        """Whether each point (N, 3) is seen from ``viewpoint`` (3,) unoccluded."""
+        vec = np.asarray(points, float) - viewpoint
+        d = np.linalg.norm(vec, axis=1)
+        t = self.distance(np.asarray(viewpoint, float), vec / d[:, None])
+        return t > d - eps_mm
+
+    def shade_inputs(self, hits: dict, origins, directions):
+        """Positions, unit normals and albedo at the hits; ``valid`` marks real hits."""
+        t = hits["t_hit"].astype(float)
+        valid = np.isfinite(t)
+        pos = np.asarray(origins, float) + directions * np.where(valid, t, 0.0)[:, None]
+        normal = np.zeros_like(pos)
+        albedo = np.zeros(len(t))
+        gid = hits["geometry_ids"].astype(np.int64)
+        pid = hits["primitive_ids"].astype(np.int64)
+        uv = hits["primitive_uvs"].astype(float)
+        for g, s in enumerate(self.surfaces):
+            sel = valid & (gid == g)
+            if not sel.any():
+                continue
+            tri = s.triangles[pid[sel]]
+            w = np.column_stack([1.0 - uv[sel].sum(axis=1), uv[sel]])  # barycentric
+            n = np.einsum("ij,ijk->ik", w, s.normals[tri])
+            normal[sel] = n / np.linalg.norm(n, axis=1, keepdims=True)
+            if s.kind == "tower":
+                R, tt = s.pose
+                P_tower = (pos[sel] - tt) @ R
+                face = pid[sel] // 2
+                on_side = face < s.tower.n_faces
+                a = np.full(sel.sum(), 0.3)  # caps and stand: grey
+                a[on_side] = tower_albedo(s.tower, face[on_side], P_tower[on_side])
+                albedo[sel] = a
+            else:
+                albedo[sel] = np.einsum("ij,ij->i", w, s.albedo[tri])
+        # shade the side the ray hits (back faces of thin shells)
+        flip = np.einsum("ij,ij->i", normal, directions) > 0
+        normal[flip] *= -1
+        return pos, normal, albedo, valid
+
+
+def _pattern_levels(pattern: np.ndarray, sigmas) -> list:
+    return [cv2.GaussianBlur(pattern, (0, 0), s, borderType=cv2.BORDER_CONSTANT) for s in sigmas]
+
+
+PATTERN_SIGMAS = np.array([0.35, 0.6, 1.0, 1.6, 2.5, 4.0])  # projector px
+
+
+def _interp_levels(sigma, levels_sigma):
+    """Indices and weights to blend two precomputed blur levels for ``sigma``."""
+    s = np.clip(sigma, levels_sigma[0], levels_sigma[-1])
+    hi = np.clip(np.searchsorted(levels_sigma, s), 1, len(levels_sigma) - 1)
+    lo = hi - 1
+    w = (s - levels_sigma[lo]) / (levels_sigma[hi] - levels_sigma[lo])
+    return lo, hi, w
+
+
+class PreparedLighting:
+    """Lighting with each projector's blurred pattern levels computed once."""
+
+    def __init__(self, lighting: Lighting, subsurface_mm: float = 0.0):
+        self.lighting = lighting
+        self.subsurface_mm = subsurface_mm
+        self.levels = [_pattern_levels(p.pattern, PATTERN_SIGMAS) for p in lighting.projectors]
+
+    def irradiance(self, scene: Scene, pos, normal, valid, kinds) -> np.ndarray:
+        L = self.lighting
+        E = np.where(valid, L.ambient, 0.0)
+        if L.key:
+            kd = np.asarray(L.key_direction, float)
+            kd /= np.linalg.norm(kd)
+            E += L.key * np.clip(normal @ kd, 0, None) * valid
+        pc = L.projector_cfg
+        for proj, levels in zip(L.projectors, self.levels):
+            m = proj.model
+            vec = m.C - pos
+            d = np.linalg.norm(vec, axis=1)
+            cosine = np.einsum("ij,ij->i", normal, vec) / np.maximum(d, 1e-9)
+            xc = (pos - m.C) @ m.R.T
+            front = xc[:, 2] > 1.0
+            u = m.fx * xc[:, 0] / np.where(front, xc[:, 2], 1.0) + m.cx
+            v = m.fy * xc[:, 1] / np.where(front, xc[:, 2], 1.0) + m.cy
+            cand = valid & front & (cosine > 0) & (u > -2) & (u < m.width + 1) & (v > -2) & (v < m.height + 1)
+            idx = np.flatnonzero(cand)
+            if len(idx) == 0:
+                continue
+            lit = scene.visible(m.C, pos[idx])
+            idx = idx[lit]
+            # blur of the pattern on the surface: projector optics (depth of
+            # field) and, on skin, light diffusing under the surface
+            defocus = pc.defocus_px_per_mm * (pc.width / 1024.0) * np.abs(xc[idx, 2] - pc.focus_mm)
+            px_mm = xc[idx, 2] / m.fx  # size of a projector pixel on the surface (mm)
+            sss = np.where(kinds[idx], self.subsurface_mm / px_mm, 0.0)
+            sigma = np.sqrt(pc.blur_sigma_px ** 2 + defocus ** 2 + sss ** 2)
+            lo, hi, w = _interp_levels(sigma, PATTERN_SIGMAS)
+            ui, vi = u[idx], v[idx]
+            value = np.zeros(len(idx))
+            for k, level in enumerate(levels):
+                use = (lo == k) | (hi == k)
+                if not use.any():
+                    continue
+                sample = sample_bilinear(level, ui[use], vi[use])
+                weight = np.where(lo[use] == k, 1.0 - w[use], w[use])
+                value[use] += weight * sample
+            emitted = pc.black_level + (1.0 - pc.black_level) * value
+            E[idx] += pc.power * emitted * cosine[idx] * (pc.distance_mm / d[idx]) ** 2
+        return E
+
+
+def render(scene: Scene, camera: Camera, lighting: PreparedLighting, cc: CameraConfig,
+           rng: np.random.Generator, exposure: float, prnu_seed: int = 0):
+    """Render one 8-bit image (height, width) of ``scene`` seen by ``camera``.
+
+    Parameters
+    ----------
+    exposure : float
+        Radiance (albedo x irradiance) that fills 80% of the full well.
+    prnu_seed : int
+        Seeds the camera's fixed photo-response non-uniformity.
+
+    Returns
+    -------
+    image : (height, width) uint8
+    depth : (height, width) float32, mean depth (mm) along the optical axis; inf on misses
+    """
+    H, W, ss = camera.height, camera.width, cc.supersample
+    rows_per_chunk = max(1, RAYS_PER_CHUNK // (W * ss * ss))
+    radiance = np.zeros((H, W), np.float64)
+    depth = np.zeros((H, W), np.float64)
+    kinds = np.array([s.kind == "skin" for s in scene.surfaces])
+    cells = np.arange(ss) / ss - 0.5
+    for r0 in range(0, H, rows_per_chunk):
+        r1 = min(H, r0 + rows_per_chunk)
+        # stratified jittered sub-samples: a regular grid would quantize the
+        # position of edges aligned with the pixel grid (a coherent bias of up
+        # to a quarter pixel along a whole marker edge); jitter makes the pixel
+        # an unbiased estimate of the area integral
+        vv = (np.arange(r0, r1)[:, None, None, None] + cells[None, :, None, None]
+              + rng.random((r1 - r0, ss, W, ss)) / ss)
+        uu = (np.arange(W)[None, None, :, None] + cells[None, None, None, :]
+              + rng.random((r1 - r0, ss, W, ss)) / ss)
+        uv = np.column_stack([uu.ravel(), vv.ravel()])
+        xy = pixel_to_normalized(camera, uv)
+        d_cam = np.column_stack([xy, np.ones(len(xy))])
+        d_cam /= np.linalg.norm(d_cam, axis=1, keepdims=True)
+        dirs = d_cam @ camera.R
+        hits = scene.cast(camera.C, dirs)
+        pos, normal, albedo, valid = scene.shade_inputs(hits, camera.C, dirs)
+        is_skin = valid & kinds[np.where(valid, hits["geometry_ids"], 0).astype(np.int64)]
+        E = lighting.irradiance(scene, pos, normal, valid, is_skin)
+        L = albedo * E
+        z = np.where(valid, hits["t_hit"] * d_cam[:, 2], 1e5)
+        shape = (r1 - r0, ss, W, ss)
+        radiance[r0:r1] = L.reshape(shape).mean(axis=(1, 3))
+        depth[r0:r1] = z.reshape(shape).mean(axis=(1, 3))
+    # --- optics: defocus (depth of field) and lens blur, blended per pixel
+    f_mm = camera.fx * (cc.pixel_size_mm)
+    coc_mm = f_mm ** 2 / (cc.f_number * (cc.focus_mm - f_mm)) * np.abs(depth - cc.focus_mm) / depth
+    sigma = np.sqrt(cc.blur_sigma_px ** 2 + (coc_mm / cc.pixel_size_mm / 4.0) ** 2)
+    blur_sigmas = np.array([cc.blur_sigma_px, 0.8, 1.2, 1.8, 2.6, 3.6, 5.0])
+    blur_sigmas = np.unique(np.maximum(blur_sigmas, cc.blur_sigma_px))
+    lo, hi, w = _interp_levels(sigma, blur_sigmas)
+    img = np.zeros_like(radiance)
+    for k, s in enumerate(blur_sigmas):
+        use = (lo == k) | (hi == k)
+        if use.any():
+            blurred = cv2.GaussianBlur(radiance, (0, 0), s, borderType=cv2.BORDER_REFLECT)
+            img[use] += np.where(lo[use] == k, 1.0 - w[use], w[use]) * blurred[use]
+    # --- sensor
+    if cc.vignetting:
+        jj, ii = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
+        r2 = ((jj - camera.cx) / camera.fx) ** 2 + ((ii - camera.cy) / camera.fy) ** 2
+        img /= (1.0 + r2) ** 2
+    prnu = np.random.default_rng(prnu_seed).normal(1.0, cc.prnu, (H, W))
+    electrons = np.clip(img * prnu / exposure * 0.8 * cc.full_well_e, 0, None)
+    electrons = rng.poisson(electrons).astype(float) + rng.normal(0, cc.read_noise_e, (H, W))
+    dn = electrons / cc.full_well_e * 255.0 + cc.black_level_dn
+    image = np.clip(np.rint(dn), 0, 255).astype(np.uint8)
+    return image, np.where(depth >= 1e5, np.inf, depth).astype(np.float32)

@@ -1,0 +1,144 @@
+"""The simulated rig: cameras with their own lenses, projectors, arm swings.
+
+World frame: right-handed, mm, Z up, origin on the floor at the rig centre
+(the test field's pose 0 frame). The patient stands at the centre facing -Y.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..camera import Camera
+from ..formats import Arm, CameraSpec, Rig
+from ..pattern import make_pattern
+from .config import ScenarioConfig
+
+
+def look_at(C, target, up=(0.0, 0.0, 1.0), roll_deg: float = 0.0) -> np.ndarray:
+    """World→camera rotation (OpenCV frame) of a camera at ``C`` looking at ``target``."""
+    z = np.asarray(target, float) - np.asarray(C, float)
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.vstack([x, y, z])
+    a = np.radians(roll_deg)
+    roll = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    return roll @ R
+
+
+def rotation_about(axis, angle_deg: float) -> np.ndarray:
+    """Active rotation matrix about a unit ``axis`` by ``angle_deg`` (right hand)."""
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    a = np.radians(angle_deg)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+
+
+@dataclass(frozen=True)
+class Projector:
+    """A pattern projector modelled as an inverse pinhole camera (projector px)."""
+
+    id: str
+    arm: str
+    model: Camera  # world→projector orientation and its pinhole (no distortion)
+    pattern: np.ndarray  # (height, width) float32 in [0, 1]
+
+
+@dataclass(frozen=True)
+class RigTruth:
+    rig: Rig
+    cameras: dict  # camera id -> Camera, as calibrated (world = test field pose 0)
+    projectors: dict  # arm id -> Projector
+    pivots: dict  # arm id -> (3,) pivot of the arm's swing (mm)
+
+
+def make_rig(cfg: ScenarioConfig, rng: np.random.Generator, centre_height_mm: float) -> RigTruth:
+    """Cameras and projectors of the rig at calibration time.
+
+    Each camera has its own true focal length, principal point and lens
+    distortion drawn from ``cfg.camera``; cameras stand on an arc around the
+    rig centre, aimed at the torso centre with mounting scatter.
+    """
+    cc, rc, pc = cfg.camera, cfg.rig, cfg.projector
+    arms, specs, cameras, projectors, pivots = [], {}, {}, {}, {}
+    step = np.degrees(rc.camera_spacing_mm / rc.camera_radius_mm)
+    centre = np.array([0.0, 0.0, centre_height_mm])
+    for k, arm_id in enumerate(rc.arms):
+        azimuth = rc.first_arm_azimuth_deg + 360.0 * k / len(rc.arms)
+        ids = [f"{arm_id}{j + 1}" for j in range(rc.cameras_per_arm)]
+        positions = []
+        for j, cam_id in enumerate(ids):
+            # cameras run counter-clockwise along the arm, seen from above
+            az = np.radians(azimuth + (j - (rc.cameras_per_arm - 1) / 2) * step)
+            C = np.array([rc.camera_radius_mm * np.cos(az), rc.camera_radius_mm * np.sin(az),
+                          centre_height_mm + rng.normal(0, rc.camera_height_sigma_mm)])
+            aim = centre + rng.normal(0, rc.aim_sigma_mm, 3)
+            R = look_at(C, aim, roll_deg=rng.normal(0, rc.roll_sigma_deg))
+            f_px = cc.focal_mm * (1 + rng.normal(0, cc.focal_spread)) / cc.pixel_size_mm
+            dist = np.array([
+                rng.uniform(*cc.k1_range), rng.normal(0, cc.k2_sigma),
+                rng.normal(0, cc.p_sigma), rng.normal(0, cc.p_sigma), rng.normal(0, cc.k3_sigma) if cc.k3_sigma else 0.0,
+            ])
+            cameras[cam_id] = Camera(
+                cc.width, cc.height, f_px, f_px * (1 + rng.normal(0, 1e-4)),
+                (cc.width - 1) / 2 + rng.normal(0, cc.principal_point_sigma_px),
+                (cc.height - 1) / 2 + rng.normal(0, cc.principal_point_sigma_px),
+                dist, R, C,
+            )
+            specs[cam_id] = CameraSpec(cam_id, cc.width, cc.height, cc.pixel_size_mm, cc.focal_mm,
+                                       "simulated low-cost camera")
+            positions.append(C)
+        pivots[arm_id] = np.mean(positions, axis=0)
+        az = np.radians(azimuth)
+        P = np.array([pc.distance_mm * np.cos(az), pc.distance_mm * np.sin(az),
+                      centre_height_mm + pc.height_offset_mm])
+        f_proj = (pc.width / 2) / (pc.coverage_mm / 2 / pc.distance_mm)
+        model = Camera(pc.width, pc.height, f_proj, f_proj, (pc.width - 1) / 2, (pc.height - 1) / 2,
+                       np.zeros(5), look_at(P, centre), P)
+        pattern, _, _ = make_pattern(pc.width, pc.height, seed=cfg.seed * 100 + k)
+        projectors[arm_id] = Projector(f"P{arm_id}", arm_id, model, pattern)
+        arms.append(Arm(arm_id, tuple(ids), f"P{arm_id}"))
+    rig = Rig(rc.serial, tuple(arms), specs)
+    return RigTruth(rig, cameras, projectors, pivots)
+
+
+def draw_arm_displacements(cfg: ScenarioConfig, rng: np.random.Generator, truth: RigTruth) -> dict:
+    """Rigid displacement of every arm at one torso capture.
+
+    The reference (first) arm stays; every other arm turns about the vertical
+    through its pivot by up to ``arm_rotation_max_deg``, tilts a little and
+    shifts by a few mm. Returns arm id -> dict(R, t, yaw_deg) with the
+    displacement ``X' = R @ X + t`` in the world frame (mm).
+    """
+    rc = cfg.rig
+    out = {}
+    for k, arm in enumerate(truth.rig.arms):
+        if k == 0:
+            out[arm.id] = {"R": np.eye(3), "t": np.zeros(3), "yaw_deg": 0.0}
+            continue
+        yaw = rng.uniform(-rc.arm_rotation_max_deg, rc.arm_rotation_max_deg)
+        tilt_axis = np.array([*rng.normal(0, 1, 2), 0.0])
+        tilt = rng.uniform(-rc.arm_tilt_max_deg, rc.arm_tilt_max_deg)
+        R = rotation_about(tilt_axis, tilt) @ rotation_about([0, 0, 1], yaw)
+        shift = rng.uniform(-rc.arm_translation_max_mm, rc.arm_translation_max_mm, 3)
+        p = truth.pivots[arm.id]
+        out[arm.id] = {"R": R, "t": p - R @ p + shift, "yaw_deg": yaw}
+    return out
+
+
+def displace(truth: RigTruth, displacements: dict) -> tuple[dict, dict]:
+    """Cameras and projectors after the arms moved by ``displacements``."""
+    cameras, projectors = {}, {}
+    for arm in truth.rig.arms:
+        D = displacements[arm.id]
+        for cam_id in arm.cameras:
+            cam = truth.cameras[cam_id]
+            cameras[cam_id] = cam.with_pose(cam.R @ D["R"].T, D["R"] @ cam.C + D["t"])
+        proj = truth.projectors[arm.id]
+        m = proj.model
+        projectors[arm.id] = Projector(proj.id, proj.arm, m.with_pose(m.R @ D["R"].T, D["R"] @ m.C + D["t"]),
+                                       proj.pattern)
+    return cameras, projectors

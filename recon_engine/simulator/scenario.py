@@ -1,0 +1,209 @@
+"""Write a complete simulated scenario in the capture-format spec, with its truth.
+
+Layout of ``OUT``::
+
+    rig.json, testfield.json                      # as the rig would ship them
+    captures/testfield-pose<k>/                   # test-field capture bundles
+    captures/<name>/                              # torso capture bundles
+    truth/scenario.json                           # every parameter and the seed
+    truth/calibration.json                        # true IOPs/EOPs at calibration time
+    truth/testfield.json                          # true marker corners (tower frame)
+    truth/testfield_poses.json                    # tower pose k -> world (= pose 0 frame)
+    truth/<name>/calibration.json                 # true cameras at that capture (arms displaced)
+    truth/<name>/body.ply, torso.ply              # posed subject, whole and the torso region
+    truth/<name>/truth.json                       # posture, arm displacements, spine, landmarks
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..formats import Calibration, write_calibration, write_capture, write_json, write_rig, write_testfield
+from .bodies import Body, Posture, curve_profiles, load_body, pose_body, skin_albedo
+from .config import ScenarioConfig
+from .render import Lighting, PreparedLighting, Scene, Surface, render
+from .rig import RigTruth, displace, draw_arm_displacements, make_rig, rotation_about
+from .testfield import Tower, draw_poses, make_tower, surveyed
+
+CAPTURED_AT = "2026-11-22T09:00:00+00:00"
+
+
+def _background(cfg: ScenarioConfig, rng: np.random.Generator) -> list[Surface]:
+    """A dim, mottled room wall beyond the rig and the floor."""
+    sc = cfg.scene
+    n_around, n_up = 96, 12
+    a = np.linspace(0, 2 * np.pi, n_around, endpoint=False)
+    z = np.linspace(0, 2600, n_up)
+    aa, zz = np.meshgrid(a, z)
+    V = np.column_stack([sc.wall_radius_mm * np.cos(aa.ravel()), sc.wall_radius_mm * np.sin(aa.ravel()), zz.ravel()])
+    i, j = np.meshgrid(np.arange(n_up - 1), np.arange(n_around), indexing="ij")
+    p0 = i * n_around + j
+    p1 = i * n_around + (j + 1) % n_around
+    T = np.vstack([np.column_stack([p0.ravel(), (p0 + n_around).ravel(), p1.ravel()]),
+                   np.column_stack([p1.ravel(), (p0 + n_around).ravel(), (p1 + n_around).ravel()])])
+    wall = Surface("wall", V, T, albedo=sc.wall_albedo * rng.uniform(0.6, 1.4, len(V)))
+    ring = np.column_stack([sc.wall_radius_mm * np.cos(a), sc.wall_radius_mm * np.sin(a), np.zeros(n_around)])
+    Vf = np.vstack([ring, [0, 0, 0]])
+    Tf = np.column_stack([np.full(n_around, n_around), np.arange(n_around), (np.arange(n_around) + 1) % n_around])
+    floor = Surface("floor", Vf, Tf, albedo=sc.floor_albedo * rng.uniform(0.8, 1.2, len(Vf)))
+    return [wall, floor]
+
+
+def _tower_surface(tower: Tower, pose) -> Surface:
+    R, t = pose
+    return Surface("tower", tower.vertices @ R.T + t, tower.triangles, tower=tower, pose=(R, t))
+
+
+def _write_ply(path: Path, vertices: np.ndarray, triangles: np.ndarray) -> None:
+    import open3d as o3d
+
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(triangles))
+    mesh.remove_unreferenced_vertices()
+    mesh.compute_vertex_normals()
+    if not o3d.io.write_triangle_mesh(str(path), mesh, write_ascii=False):
+        raise OSError(f"{path}: could not write PLY")
+
+
+def _calibration(rig_serial: str, cameras: dict, frame: str) -> Calibration:
+    return Calibration(rig=rig_serial, calibrated_at=CAPTURED_AT, frame=frame, cameras=dict(cameras))
+
+
+def _draw_posture(cfg: ScenarioConfig, rng: np.random.Generator, visit: int, placement) -> Posture:
+    sc = cfg.subject
+    R_place, t_place = placement
+    tilt_axis = np.array([*rng.normal(0, 1, 2), 0.0])
+    R_sway = rotation_about(tilt_axis, rng.uniform(-sc.sway_tilt_deg, sc.sway_tilt_deg)) @ \
+        rotation_about([0, 0, 1], rng.uniform(-sc.sway_yaw_deg, sc.sway_yaw_deg))
+    t_sway = np.array([*rng.uniform(-sc.sway_shift_mm, sc.sway_shift_mm, 2), 0.0])
+    rotation = sc.rotation_deg + visit * sc.progression_deg
+    lateral = sc.lateral_mm * rotation / sc.rotation_deg if sc.rotation_deg else sc.lateral_mm
+    return Posture(rotation_deg=rotation, lateral_mm=lateral, breathing=rng.uniform(-0.5, 0.5),
+                   growth=visit * sc.growth, R=R_sway @ R_place, t=R_sway @ t_place + t_sway)
+
+
+def _landmark(scene: Scene, spine_point, posterior) -> list:
+    """The skin point behind a spine point (ray from inside the body towards the back)."""
+    start = np.asarray(spine_point, float)
+    t = scene.distance(start, posterior[None, :])[0]
+    return (start + t * posterior).tolist() if np.isfinite(t) else None
+
+
+def simulate(out: str | Path, cfg: ScenarioConfig, force: bool = False, progress=print) -> dict:
+    """Simulate ``cfg`` into the folder ``out``; returns a summary of what was written.
+
+    The scenario is written into a temporary folder beside ``out`` and renamed
+    at the end, so an interrupted run leaves no half-written scenario.
+    """
+    out = Path(out)
+    if out.exists():
+        if not force:
+            raise FileExistsError(f"{out}: already exists (use --force to replace it)")
+    tmp = out.with_name(out.name + ".partial")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    t_start = time.perf_counter()
+    seeds = np.random.SeedSequence(cfg.seed).spawn(8)
+    rng_rig, rng_tf, rng_body, rng_bg, rng_arms, rng_pose, rng_noise, rng_place = (
+        np.random.default_rng(s) for s in seeds)
+
+    body = load_body(cfg.subject)
+    albedo = skin_albedo(body.vertices, cfg.subject, rng_body)
+    centre_z = 0.5 * (body.z_sacrum + body.z_c7)
+    truth = make_rig(cfg, rng_rig, centre_z)
+    tower = make_tower(cfg.testfield, rng_tf)
+    testfield = surveyed(tower, cfg.testfield, rng_tf)
+    poses = draw_poses(cfg.testfield, rng_tf)
+    background = _background(cfg, rng_bg)
+    rig = truth.rig
+
+    write_rig(tmp / "rig.json", rig)
+    write_testfield(tmp / "testfield.json", testfield)
+    (tmp / "truth").mkdir()
+    write_calibration(tmp / "truth" / "calibration.json", _calibration(rig.serial, truth.cameras, "testfield pose 0"))
+    write_testfield(tmp / "truth" / "testfield.json",
+                    type(testfield)(testfield.name, testfield.aruco_dictionary, tower.corners, 0.0))
+    write_json(tmp / "truth" / "testfield_poses.json", {
+        "frame": "world = testfield pose 0",
+        "poses": [{"pose": k, "R": R.tolist(), "t": t.tolist()} for k, (R, t) in enumerate(poses)]})
+
+    summary = {"out": str(out), "preset": cfg.preset, "seed": cfg.seed, "captures": [], "timings_s": {}}
+    cc = cfg.camera
+
+    def render_capture(name, scene, lighting, cameras, exposure, capture_kw):
+        t0 = time.perf_counter()
+        images = {}
+        for cam_id in rig.camera_ids:
+            cam_seed = int(np.random.SeedSequence([cfg.seed, 7]).generate_state(1)[0]) + rig.camera_ids.index(cam_id)
+            images[cam_id], _ = render(scene, cameras[cam_id], lighting, cc, rng_noise, exposure, prnu_seed=cam_seed)
+        dest = tmp / "captures" / name
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        write_capture(dest, rig=rig.serial, captured_at=CAPTURED_AT, images=images, **capture_kw)
+        dt = time.perf_counter() - t0
+        summary["timings_s"][name] = round(dt, 2)
+        summary["captures"].append(f"captures/{name}")
+        progress(f"  {name}: {len(images)} images in {dt:.1f} s")
+        return images
+
+    # --- test field captures: room light, projectors off
+    tf_cfg = cfg.testfield
+    tf_light = PreparedLighting(Lighting(ambient=tf_cfg.ambient, key=tf_cfg.key_light))
+    for k, pose in enumerate(poses):
+        scene = Scene([_tower_surface(tower, pose), *background])
+        render_capture(f"testfield-pose{k}", scene, tf_light, truth.cameras, 0.6,
+                       dict(kind="testfield", testfield=testfield.name, pose=k))
+
+    # --- torso captures: all projectors on, arms B.. displaced
+    placements = {}
+    for name, visit in cfg.captures:
+        if visit not in placements:
+            yaw = rng_place.uniform(-cfg.subject.visit_yaw_deg, cfg.subject.visit_yaw_deg)
+            shift = np.array([*rng_place.uniform(-cfg.subject.visit_shift_mm, cfg.subject.visit_shift_mm, 2), 0.0])
+            placements[visit] = (rotation_about([0, 0, 1], yaw), shift)
+        posture = _draw_posture(cfg, rng_pose, visit, placements[visit])
+        V, spine = pose_body(body, cfg.subject, posture)
+        skin = Surface("skin", V, body.triangles, albedo=albedo)
+        scene = Scene([skin, *background])
+        displacement = draw_arm_displacements(cfg, rng_arms, truth)
+        cameras, projectors = displace(truth, displacement)
+        lighting = PreparedLighting(
+            Lighting(ambient=cfg.scene.torso_ambient, projectors=tuple(projectors[a.id] for a in rig.arms),
+                     projector_cfg=cfg.projector),
+            subsurface_mm=cfg.subject.subsurface_mm)
+        render_capture(name, scene, lighting, cameras, cfg.subject.albedo * (cfg.projector.power + cfg.scene.torso_ambient),
+                       dict(kind="torso"))
+        tdir = tmp / "truth" / name
+        tdir.mkdir(parents=True)
+        write_calibration(tdir / "calibration.json", _calibration(rig.serial, cameras, "testfield pose 0"))
+        _write_ply(tdir / "body.ply", V, body.triangles)
+        _write_ply(tdir / "torso.ply", V, body.triangles[body.torso_faces])
+        posterior = posture.R @ np.array([0.0, 1.0, 0.0])
+        levels = np.linspace(0, 1, 21)
+        lateral, rotation = curve_profiles(levels, cfg.subject, posture.rotation_deg, posture.lateral_mm)
+        write_json(tdir / "truth.json", {
+            "visit": visit,
+            "posture": posture.to_dict(),
+            "arm_displacements": {a: {"R": d["R"].tolist(), "t": d["t"].tolist(), "yaw_deg": d["yaw_deg"]}
+                                  for a, d in displacement.items()},
+            "displacement_convention": "X_displaced = R @ X_calibrated + t (world frame, mm)",
+            "spine": spine.tolist(),
+            "landmarks": {"vertebra_prominens": _landmark(scene, spine[-1], posterior),
+                          "sacral_point": _landmark(scene, spine[0], posterior)},
+            "curve": {"pattern": cfg.subject.curve, "levels": levels.tolist(),
+                      "lateral_mm": lateral.tolist(), "rotation_deg": rotation.tolist(),
+                      "convention": "level 0 = sacrum, 1 = C7; +lateral and +rotation towards the patient's right"},
+        })
+
+    summary["timings_s"]["total"] = round(time.perf_counter() - t_start, 2)
+    write_json(tmp / "truth" / "scenario.json", {"config": cfg.to_dict(), "summary": summary,
+                                                  "body": body.name, "mesh_triangles": int(len(body.triangles))})
+    if out.exists():
+        shutil.rmtree(out)
+    tmp.rename(out)
+    return summary
