@@ -156,7 +156,7 @@ def _distort_jacobian(x, y, dist):
     return dxd_dx, dxd_dy, dyd_dx, dyd_dy
 
 
-def undistort(xy_distorted, dist, iterations: int = 30, tol: float = 1e-15) -> np.ndarray:
+def undistort(xy_distorted, dist, iterations: int = 30, tol: float = 1e-14, initial=None) -> np.ndarray:
     """Invert :func:`distort` by Newton's method.
 
     Starts from the distorted coordinates and refines every point with the
@@ -171,31 +171,33 @@ def undistort(xy_distorted, dist, iterations: int = 30, tol: float = 1e-15) -> n
     dist : (5,) array
         ``[k1, k2, p1, p2, k3]``.
 
+    initial : (N, 2) array, optional
+        A close first guess (e.g. interpolated from a coarse grid); Newton's
+        quadratic convergence then needs one or two steps.
+
     Returns
     -------
     (N, 2) array of ideal normalized coordinates.
     """
     target = np.asarray(xy_distorted, dtype=float)
     dist = np.asarray(dist, dtype=float)
-    xy = target.copy()
+    xy = target.copy() if initial is None else np.array(initial, dtype=float)
     if not np.any(dist):
-        return xy
-    active = np.ones(target.shape[:-1], dtype=bool)
+        return target.copy()
+    x, y = xy[..., 0].copy(), xy[..., 1].copy()
+    tx, ty = target[..., 0], target[..., 1]
     for _ in range(iterations):
-        x, y = xy[active, 0], xy[active, 1]
-        res = distort(xy[active], dist) - target[active]
+        xd = distort(np.stack([x, y], axis=-1), dist)
         a, b, c, d = _distort_jacobian(x, y, dist)
+        rx, ry = xd[..., 0] - tx, xd[..., 1] - ty
         det = a * d - b * c
-        dx = (d * res[:, 0] - b * res[:, 1]) / det
-        dy = (-c * res[:, 0] + a * res[:, 1]) / det
-        xy[active, 0] -= dx
-        xy[active, 1] -= dy
-        still = np.maximum(np.abs(dx), np.abs(dy)) > tol
-        idx = np.flatnonzero(active)
-        active[idx[~still]] = False
-        if not active.any():
+        dx = (d * rx - b * ry) / det
+        dy = (a * ry - c * rx) / det
+        x -= dx
+        y -= dy
+        if max(np.max(np.abs(dx), initial=0.0), np.max(np.abs(dy), initial=0.0)) <= tol:
             break
-    return xy
+    return np.stack([x, y], axis=-1)
 
 
 def project(camera: Camera, X) -> np.ndarray:
@@ -225,11 +227,28 @@ def camera_depth(camera: Camera, X) -> np.ndarray:
     return (X - camera.C) @ camera.R[2]
 
 
-def pixel_to_normalized(camera: Camera, uv) -> np.ndarray:
-    """Ideal (undistorted) normalized coordinates (N, 2) of pixels ``uv`` (N, 2)."""
+def pixel_to_normalized(camera: Camera, uv, initial=None, iterations: int = 30) -> np.ndarray:
+    """Ideal (undistorted) normalized coordinates (N, 2) of pixels ``uv`` (N, 2).
+
+    ``initial`` is an optional close guess of the result (see :func:`undistort`).
+    """
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
     xyd = np.column_stack([(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy])
-    return undistort(xyd, camera.dist)
+    return undistort(xyd, camera.dist, iterations=iterations, initial=initial)
+
+
+def undistortion_grid(camera: Camera, step: int = 8):
+    """Ideal normalized coordinates on a grid every ``step`` px covering the frame.
+
+    Returns ``(grid_x, grid_y)``, two float32 (rows, cols) maps with node
+    (i, j) at pixel (j * step - step, i * step - step): a lookup table for
+    first guesses of :func:`pixel_to_normalized` over a whole image.
+    """
+    us = np.arange(-step, camera.width + 2 * step, step, dtype=float)
+    vs = np.arange(-step, camera.height + 2 * step, step, dtype=float)
+    uu, vv = np.meshgrid(us, vs)
+    xy = pixel_to_normalized(camera, np.column_stack([uu.ravel(), vv.ravel()]))
+    return xy[:, 0].reshape(uu.shape).astype(np.float32), xy[:, 1].reshape(uu.shape).astype(np.float32)
 
 
 def normalized_to_pixel(camera: Camera, xy) -> np.ndarray:

@@ -23,11 +23,12 @@ import cv2
 import numpy as np
 import open3d as o3d
 
-from ..camera import Camera, pixel_to_normalized
+from ..camera import Camera, pixel_to_normalized, undistortion_grid
 from ..imaging import sample_bilinear
 from .config import CameraConfig, ProjectorConfig
 from .testfield import Tower, tower_albedo
 
+LUT_STEP = 8  # px between nodes of the inverse-distortion lookup table
 RAYS_PER_CHUNK = 1_500_000  # bounds the memory of one ray-casting call
 SHADOW_EPS_MM = 1.0  # a shadow-ray hit this close before the point still lights it
 
@@ -43,12 +44,15 @@ class Surface:
     tower: Tower | None = None
     pose: tuple | None = None  # tower: (R, t) with X_world = R @ X_tower + t
     normals: np.ndarray = field(init=False)
+    triangle_albedo: np.ndarray | None = field(init=False, default=None)
 
     def __post_init__(self):
         mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(self.vertices),
                                          o3d.utility.Vector3iVector(self.triangles))
         mesh.compute_vertex_normals()
         self.normals = np.asarray(mesh.vertex_normals).copy()
+        if self.albedo is not None:
+            self.triangle_albedo = self.albedo[self.triangles].mean(axis=1)
 
 
 @dataclass(frozen=True)
@@ -75,9 +79,10 @@ class Scene:
     def cast(self, origins: np.ndarray, directions: np.ndarray) -> dict:
         """First hits of rays (N, 3) from ``origins`` (N, 3) or (3,) along unit ``directions``."""
         n = len(directions)
-        origins = np.broadcast_to(np.asarray(origins, np.float32), (n, 3))
-        rays = np.hstack([origins, directions.astype(np.float32)])
-        out = {k: [] for k in ("t_hit", "geometry_ids", "primitive_ids", "primitive_uvs")}
+        rays = np.empty((n, 6), np.float32)
+        rays[:, :3] = origins
+        rays[:, 3:] = directions
+        out = {k: [] for k in ("t_hit", "geometry_ids", "primitive_ids", "primitive_uvs", "primitive_normals")}
         for start in range(0, n, RAYS_PER_CHUNK):
             r = self.raycast.cast_rays(o3d.core.Tensor(rays[start:start + RAYS_PER_CHUNK]))
             for k in out:
@@ -96,33 +101,39 @@ class Scene:
         return t > d - eps_mm
 
     def shade_inputs(self, hits: dict, origins, directions):
-        """Positions, unit normals and albedo at the hits; ``valid`` marks real hits."""
-        t = hits["t_hit"].astype(float)
+        """Positions, unit normals and albedo at the hits; ``valid`` marks real hits.
+
+        Smooth surfaces (skin) get normals and albedo interpolated from their
+        vertices; flat ones (tower, walls) the triangle's normal.
+        """
+        t = hits["t_hit"]
         valid = np.isfinite(t)
         pos = np.asarray(origins, float) + directions * np.where(valid, t, 0.0)[:, None]
-        normal = np.zeros_like(pos)
+        normal = hits["primitive_normals"].astype(float)
         albedo = np.zeros(len(t))
-        gid = hits["geometry_ids"].astype(np.int64)
+        gid = hits["geometry_ids"]
         pid = hits["primitive_ids"].astype(np.int64)
-        uv = hits["primitive_uvs"].astype(float)
         for g, s in enumerate(self.surfaces):
-            sel = valid & (gid == g)
-            if not sel.any():
+            sel = np.flatnonzero(valid & (gid == g))
+            if not len(sel):
                 continue
-            tri = s.triangles[pid[sel]]
-            w = np.column_stack([1.0 - uv[sel].sum(axis=1), uv[sel]])  # barycentric
-            n = np.einsum("ij,ijk->ik", w, s.normals[tri])
-            normal[sel] = n / np.linalg.norm(n, axis=1, keepdims=True)
             if s.kind == "tower":
                 R, tt = s.pose
                 P_tower = (pos[sel] - tt) @ R
                 face = pid[sel] // 2
                 on_side = face < s.tower.n_faces
-                a = np.full(sel.sum(), 0.3)  # caps and stand: grey
+                a = np.full(len(sel), 0.3)  # caps and stand: grey
                 a[on_side] = tower_albedo(s.tower, face[on_side], P_tower[on_side])
                 albedo[sel] = a
-            else:
+            elif s.kind == "skin":
+                tri = s.triangles[pid[sel]]
+                uv = hits["primitive_uvs"][sel].astype(float)
+                w = np.column_stack([1.0 - uv.sum(axis=1), uv])  # barycentric
+                n = np.einsum("ij,ijk->ik", w, s.normals[tri])
+                normal[sel] = n / np.linalg.norm(n, axis=1, keepdims=True)
                 albedo[sel] = np.einsum("ij,ij->i", w, s.albedo[tri])
+            else:
+                albedo[sel] = s.triangle_albedo[pid[sel]]
         # shade the side the ray hits (back faces of thin shells)
         flip = np.einsum("ij,ij->i", normal, directions) > 0
         normal[flip] *= -1
@@ -161,29 +172,35 @@ class PreparedLighting:
             kd /= np.linalg.norm(kd)
             E += L.key * np.clip(normal @ kd, 0, None) * valid
         pc = L.projector_cfg
+        hit = np.flatnonzero(valid)
+        pos32 = pos[hit].astype(np.float32)
+        nrm32 = normal[hit].astype(np.float32)
         for proj, levels in zip(L.projectors, self.levels):
             m = proj.model
-            vec = m.C - pos
-            d = np.linalg.norm(vec, axis=1)
-            cosine = np.einsum("ij,ij->i", normal, vec) / np.maximum(d, 1e-9)
-            xc = (pos - m.C) @ m.R.T
-            front = xc[:, 2] > 1.0
-            u = m.fx * xc[:, 0] / np.where(front, xc[:, 2], 1.0) + m.cx
-            v = m.fy * xc[:, 1] / np.where(front, xc[:, 2], 1.0) + m.cy
-            cand = valid & front & (cosine > 0) & (u > -2) & (u < m.width + 1) & (v > -2) & (v < m.height + 1)
-            idx = np.flatnonzero(cand)
+            rel = pos32 - m.C.astype(np.float32)  # projector -> point
+            xc = rel @ m.R.T.astype(np.float32)
+            facing = np.einsum("ij,ij->i", nrm32, rel) < 0
+            sel = np.flatnonzero(facing & (xc[:, 2] > 1.0))
+            xc, rel = xc[sel], rel[sel]
+            u = m.fx * xc[:, 0] / xc[:, 2] + m.cx
+            v = m.fy * xc[:, 1] / xc[:, 2] + m.cy
+            inside = (u > -2) & (u < m.width + 1) & (v > -2) & (v < m.height + 1)
+            sel, xc, rel, u, v = sel[inside], xc[inside], rel[inside], u[inside], v[inside]
+            d = np.sqrt(np.einsum("ij,ij->i", rel, rel))
+            cosine = -np.einsum("ij,ij->i", nrm32[sel], rel) / d
+            idx = hit[sel]
             if len(idx) == 0:
                 continue
             lit = scene.visible(m.C, pos[idx])
-            idx = idx[lit]
+            idx, xc, u, v, d, cosine = idx[lit], xc[lit], u[lit], v[lit], d[lit], cosine[lit]
             # blur of the pattern on the surface: projector optics (depth of
             # field) and, on skin, light diffusing under the surface
-            defocus = pc.defocus_px_per_mm * (pc.width / 1024.0) * np.abs(xc[idx, 2] - pc.focus_mm)
-            px_mm = xc[idx, 2] / m.fx  # size of a projector pixel on the surface (mm)
+            defocus = pc.defocus_px_per_mm * (pc.width / 1024.0) * np.abs(xc[:, 2] - pc.focus_mm)
+            px_mm = xc[:, 2] / m.fx  # size of a projector pixel on the surface (mm)
             sss = np.where(kinds[idx], self.subsurface_mm / px_mm, 0.0)
             sigma = np.sqrt(pc.blur_sigma_px ** 2 + defocus ** 2 + sss ** 2)
             lo, hi, w = _interp_levels(sigma, PATTERN_SIGMAS)
-            ui, vi = u[idx], v[idx]
+            ui, vi = u, v
             value = np.zeros(len(idx))
             for k, level in enumerate(levels):
                 use = (lo == k) | (hi == k)
@@ -193,7 +210,7 @@ class PreparedLighting:
                 weight = np.where(lo[use] == k, 1.0 - w[use], w[use])
                 value[use] += weight * sample
             emitted = pc.black_level + (1.0 - pc.black_level) * value
-            E[idx] += pc.power * emitted * cosine[idx] * (pc.distance_mm / d[idx]) ** 2
+            E[idx] += pc.power * emitted * cosine * (pc.distance_mm / d) ** 2
         return E
 
 
@@ -219,6 +236,7 @@ def render(scene: Scene, camera: Camera, lighting: PreparedLighting, cc: CameraC
     depth = np.zeros((H, W), np.float64)
     kinds = np.array([s.kind == "skin" for s in scene.surfaces])
     cells = np.arange(ss) / ss - 0.5
+    lut = undistortion_grid(camera, LUT_STEP)
     for r0 in range(0, H, rows_per_chunk):
         r1 = min(H, r0 + rows_per_chunk)
         # stratified jittered sub-samples: a regular grid would quantize the
@@ -230,7 +248,12 @@ def render(scene: Scene, camera: Camera, lighting: PreparedLighting, cc: CameraC
         uu = (np.arange(W)[None, None, :, None] + cells[None, None, None, :]
               + rng.random((r1 - r0, ss, W, ss)) / ss)
         uv = np.column_stack([uu.ravel(), vv.ravel()])
-        xy = pixel_to_normalized(camera, uv)
+        # exact inverse distortion: Newton from a guess interpolated on a grid
+        gx = (uv[:, 0] + LUT_STEP) / LUT_STEP
+        gy = (uv[:, 1] + LUT_STEP) / LUT_STEP
+        guess = np.column_stack([sample_bilinear(lut[0], gx, gy, border="replicate"),
+                                 sample_bilinear(lut[1], gx, gy, border="replicate")])
+        xy = pixel_to_normalized(camera, uv, initial=guess, iterations=1)
         d_cam = np.column_stack([xy, np.ones(len(xy))])
         d_cam /= np.linalg.norm(d_cam, axis=1, keepdims=True)
         dirs = d_cam @ camera.R

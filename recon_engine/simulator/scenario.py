@@ -16,9 +16,11 @@ Layout of ``OUT``::
 
 from __future__ import annotations
 
-import json
+import multiprocessing
+import os
 import shutil
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -94,12 +96,37 @@ def _landmark(scene: Scene, spine_point, posterior) -> list:
     return (start + t * posterior).tolist() if np.isfinite(t) else None
 
 
-def simulate(out: str | Path, cfg: ScenarioConfig, force: bool = False, progress=print) -> dict:
+def _render_group(job):
+    """Render some cameras of one capture (runs in a worker process)."""
+    surfaces, lighting, subsurface, cameras, cc, exposure, seeds, prnu_seeds = job
+    scene = Scene(surfaces)
+    prepared = PreparedLighting(lighting, subsurface)
+    return {c: render(scene, cam, prepared, cc, np.random.default_rng(seeds[c]), exposure,
+                      prnu_seed=prnu_seeds[c])[0]
+            for c, cam in cameras.items()}
+
+
+def simulate(out: str | Path, cfg: ScenarioConfig, force: bool = False, progress=print,
+             workers: int | None = None) -> dict:
     """Simulate ``cfg`` into the folder ``out``; returns a summary of what was written.
 
     The scenario is written into a temporary folder beside ``out`` and renamed
-    at the end, so an interrupted run leaves no half-written scenario.
+    at the end, so an interrupted run leaves no half-written scenario. Cameras
+    are rendered in ``workers`` processes (default: one per core); every
+    camera's noise has its own seed, so the images do not depend on ``workers``.
     """
+    n_workers = max(1, workers or os.cpu_count() or 1)
+    pool = None
+    if n_workers > 1:
+        pool = ProcessPoolExecutor(n_workers, mp_context=multiprocessing.get_context("spawn"))
+    try:
+        return _simulate(out, cfg, force, progress, n_workers, pool)
+    finally:
+        if pool:
+            pool.shutdown()
+
+
+def _simulate(out, cfg, force, progress, n_workers, pool) -> dict:
     out = Path(out)
     if out.exists():
         if not force:
@@ -110,7 +137,7 @@ def simulate(out: str | Path, cfg: ScenarioConfig, force: bool = False, progress
     tmp.mkdir(parents=True)
     t_start = time.perf_counter()
     seeds = np.random.SeedSequence(cfg.seed).spawn(8)
-    rng_rig, rng_tf, rng_body, rng_bg, rng_arms, rng_pose, rng_noise, rng_place = (
+    rng_rig, rng_tf, rng_body, rng_bg, rng_arms, rng_pose, _, rng_place = (
         np.random.default_rng(s) for s in seeds)
 
     body = load_body(cfg.subject)
@@ -136,12 +163,18 @@ def simulate(out: str | Path, cfg: ScenarioConfig, force: bool = False, progress
     summary = {"out": str(out), "preset": cfg.preset, "seed": cfg.seed, "captures": [], "timings_s": {}}
     cc = cfg.camera
 
-    def render_capture(name, scene, lighting, cameras, exposure, capture_kw):
+    def render_capture(name, surfaces, lighting, subsurface, cameras, exposure, capture_kw):
         t0 = time.perf_counter()
+        capture_index = len(summary["captures"])
+        ids = rig.camera_ids
+        groups = [ids[k::n_workers] for k in range(n_workers)]
+        jobs = [(surfaces, lighting, subsurface, {c: cameras[c] for c in g}, cc, exposure,
+                 {c: (cfg.seed, 1, capture_index, ids.index(c)) for c in g},
+                 {c: (cfg.seed, 2, ids.index(c)) for c in g}) for g in groups if g]
         images = {}
-        for cam_id in rig.camera_ids:
-            cam_seed = int(np.random.SeedSequence([cfg.seed, 7]).generate_state(1)[0]) + rig.camera_ids.index(cam_id)
-            images[cam_id], _ = render(scene, cameras[cam_id], lighting, cc, rng_noise, exposure, prnu_seed=cam_seed)
+        for part in (pool.map(_render_group, jobs) if pool else map(_render_group, jobs)):
+            images.update(part)
+        images = {c: images[c] for c in ids}
         dest = tmp / "captures" / name
         dest.parent.mkdir(parents=True, exist_ok=True)
         write_capture(dest, rig=rig.serial, captured_at=CAPTURED_AT, images=images, **capture_kw)
@@ -153,11 +186,10 @@ def simulate(out: str | Path, cfg: ScenarioConfig, force: bool = False, progress
 
     # --- test field captures: room light, projectors off
     tf_cfg = cfg.testfield
-    tf_light = PreparedLighting(Lighting(ambient=tf_cfg.ambient, key=tf_cfg.key_light))
+    tf_light = Lighting(ambient=tf_cfg.ambient, key=tf_cfg.key_light)
     for k, pose in enumerate(poses):
-        scene = Scene([_tower_surface(tower, pose), *background])
-        render_capture(f"testfield-pose{k}", scene, tf_light, truth.cameras, 0.6,
-                       dict(kind="testfield", testfield=testfield.name, pose=k))
+        render_capture(f"testfield-pose{k}", [_tower_surface(tower, pose), *background], tf_light, 0.0,
+                       truth.cameras, 0.6, dict(kind="testfield", testfield=testfield.name, pose=k))
 
     # --- torso captures: all projectors on, arms B.. displaced
     placements = {}
@@ -169,15 +201,13 @@ def simulate(out: str | Path, cfg: ScenarioConfig, force: bool = False, progress
         posture = _draw_posture(cfg, rng_pose, visit, placements[visit])
         V, spine = pose_body(body, cfg.subject, posture)
         skin = Surface("skin", V, body.triangles, albedo=albedo)
-        scene = Scene([skin, *background])
+        scene = Scene([skin, *background])  # for the landmarks below
         displacement = draw_arm_displacements(cfg, rng_arms, truth)
         cameras, projectors = displace(truth, displacement)
-        lighting = PreparedLighting(
-            Lighting(ambient=cfg.scene.torso_ambient, projectors=tuple(projectors[a.id] for a in rig.arms),
-                     projector_cfg=cfg.projector),
-            subsurface_mm=cfg.subject.subsurface_mm)
-        render_capture(name, scene, lighting, cameras, cfg.subject.albedo * (cfg.projector.power + cfg.scene.torso_ambient),
-                       dict(kind="torso"))
+        lighting = Lighting(ambient=cfg.scene.torso_ambient, projectors=tuple(projectors[a.id] for a in rig.arms),
+                            projector_cfg=cfg.projector)
+        render_capture(name, [skin, *background], lighting, cfg.subject.subsurface_mm, cameras,
+                       cfg.subject.albedo * (cfg.projector.power + cfg.scene.torso_ambient), dict(kind="torso"))
         tdir = tmp / "truth" / name
         tdir.mkdir(parents=True)
         write_calibration(tdir / "calibration.json", _calibration(rig.serial, cameras, "testfield pose 0"))

@@ -103,25 +103,27 @@ def make_tower(cfg: TestFieldConfig, rng: np.random.Generator) -> Tower:
 
 def tower_albedo(tower: Tower, face: np.ndarray, P_tower: np.ndarray) -> np.ndarray:
     """Printed albedo at points ``P_tower`` (N, 3, tower frame) on side faces ``face`` (N,)."""
-    rel = P_tower - tower.origin[face]
-    x = np.einsum("ij,ij->i", rel, tower.u[face])
-    y = np.einsum("ij,ij->i", rel, tower.v[face])
+    rel = (P_tower - tower.origin[face]).astype(np.float32)
+    x = (rel * tower.u[face].astype(np.float32)).sum(axis=1)
+    y = rel[:, 2]  # faces are vertical: v is +Z
     rows, cols = tower.slots.shape[1:]
-    pitch = tower.slot_xy[1, 0, 1] - tower.slot_xy[0, 0, 1] if rows > 1 else tower.marker_mm * 2
-    pitch_x = tower.slot_xy[0, 1, 0] - tower.slot_xy[0, 0, 0] if cols > 1 else tower.marker_mm * 2
-    x0, y0 = tower.slot_xy[0, 0]
-    c = np.floor((x - x0) / pitch_x).astype(int)
-    r = np.floor((y - y0) / pitch).astype(int)
-    inside = (r >= 0) & (r < rows) & (c >= 0) & (c < cols)
-    rc, cc = np.clip(r, 0, rows - 1), np.clip(c, 0, cols - 1)
-    lx = x - tower.slot_xy[rc, cc, 0]
-    ly = y - tower.slot_xy[rc, cc, 1]
     m = tower.marker_mm
-    inside &= (lx >= 0) & (lx < m) & (ly >= 0) & (ly < m)
-    cell_c = np.clip(np.floor(lx / m * 6).astype(int), 0, 5)
-    cell_r = np.clip(5 - np.floor(ly / m * 6).astype(int), 0, 5)  # row 0 at the top
-    ids = tower.slots[face, rc, cc]
-    white = tower.bits[ids, cell_r, cell_c].astype(bool)
+    x0, y0 = tower.slot_xy[0, 0]
+    pitch_x = tower.slot_xy[0, 1, 0] - x0 if cols > 1 else 2 * m
+    pitch_y = tower.slot_xy[1, 0, 1] - y0 if rows > 1 else 2 * m
+    # slot, and position inside the slot in units of marker cells (6 per side)
+    gx = (x - x0) / pitch_x
+    gy = (y - y0) / pitch_y
+    c = np.floor(gx).astype(np.int32)
+    r = np.floor(gy).astype(np.int32)
+    lx = (gx - c) * (pitch_x / m * 6)
+    ly = (gy - r) * (pitch_y / m * 6)
+    inside = (r >= 0) & (r < rows) & (c >= 0) & (c < cols) & (lx < 6) & (ly < 6)
+    np.clip(r, 0, rows - 1, out=r)
+    np.clip(c, 0, cols - 1, out=c)
+    cell_c = np.minimum(lx.astype(np.int32), 5)
+    cell_r = 5 - np.minimum(ly.astype(np.int32), 5)  # row 0 at the top
+    white = tower.bits[tower.slots[face, r, c], cell_r, cell_c].astype(bool)
     return np.where(inside & ~white, BLACK, WHITE)
 
 
