@@ -1,0 +1,45 @@
+# torsoscan: two commands on a fresh machine.
+#   make demo   creates .venv, installs, runs the main job on the embedded default
+#   make test   creates .venv, installs, runs the whole suite
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+SYSDEPS := libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1
+
+.PHONY: demo test venv sysdeps bench clean
+
+demo: $(STAMP)
+	$(VENV)/bin/torsoscan simulate --preset tiny --out demo-out/scenario --force
+
+test: $(STAMP)
+	$(PY) -m pytest -q tests
+
+venv: $(STAMP)
+
+# System libraries that open3d (libusb) and headless pyvista (EGL) load.
+sysdeps:
+	@missing=""; for p in $(SYSDEPS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -z "$$missing" ]; then exit 0; fi; \
+	if [ "$$(id -u)" != 0 ] || ! command -v apt-get >/dev/null; then \
+		echo "missing system packages:$$missing (install them as root with apt-get)"; exit 0; fi; \
+	echo "installing system packages:$$missing"; \
+	apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing >/dev/null
+
+$(STAMP): pyproject.toml | sysdeps
+	@command -v uv >/dev/null 2>&1 || $(PYTHON) -m pip install -q uv || true
+	@if command -v uv >/dev/null 2>&1; then \
+		[ -x $(PY) ] || uv venv -q $(VENV); \
+		uv pip install -q -p $(PY) -e ".[test]"; \
+	else \
+		[ -x $(PY) ] || $(PYTHON) -m venv $(VENV); \
+		$(PY) -m pip install -q -e ".[test]"; \
+	fi
+	@touch $(STAMP)
+
+bench: $(STAMP)
+	$(PY) benchmarks/bench_simulate.py --preset paper --out bench-out/paper
+
+clean:
+	rm -rf $(VENV) demo-out bench-out var .pytest_cache
