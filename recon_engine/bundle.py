@@ -103,6 +103,7 @@ class Solution:
     iterations: int = 0
     converged: bool = False
     history: list = field(default_factory=list)
+    cam_cov: np.ndarray | None = None  # (C, 15, 15) covariance of each camera's parameters (fixed ones zero)
 
 
 def project_observations(cams, poses, points, cam, pose, point) -> np.ndarray:
@@ -269,6 +270,10 @@ def adjust(pb: Problem, max_iterations: int = 30, reject_k: float = 4.0, robust_
     cam_sigma = np.zeros_like(cams)
     valid = cam_cols >= 0
     cam_sigma[valid] = sd[cam_cols[valid]]
+    cam_cov = np.zeros((len(cams), N_CAM, N_CAM))
+    for c in range(len(cams)):
+        ids = np.flatnonzero(valid[c])
+        cam_cov[c][np.ix_(ids, ids)] = Q[np.ix_(cam_cols[c, ids], cam_cols[c, ids])] * cov_scale
     pose_sigma = np.zeros_like(poses)
     k = np.flatnonzero(free_pose)
     for i, p in enumerate(k):
@@ -287,7 +292,7 @@ def adjust(pb: Problem, max_iterations: int = 30, reject_k: float = 4.0, robust_
                 if iop_eop and abs(rho[a, b]) > correlation_warn:
                     correlations.append((c, names[a], names[b], float(rho[a, b])))
     return Solution(cams, poses, points, pb.uv - pred, inlier, float(sigma0), cam_sigma, pose_sigma, point_sigma,
-                    correlations, it_total, converged, history)
+                    correlations, it_total, converged, history, cam_cov)
 
 
 def _apply(dx, cams, poses, points, cam_cols, free_pose, base_pose, base_point):

@@ -100,6 +100,20 @@ def check_captures(captures: list[Capture], rig: Rig, testfield: TestField) -> N
         raise ValueError("no capture of pose 0: pose 0 defines the calibration frame")
 
 
+def remeasure_targets(targets: list, images: dict, cameras: dict, report: CalibrationReport,
+                      cfg: CalibrationConfig) -> list:
+    """The same detections measured again, edges undistorted with ``cameras``' IOPs."""
+    out = []
+    for it in targets:
+        if it.camera not in cameras or len(it.ids) == 0:
+            continue
+        refined, rms, ok = refine_corners(images[(it.camera, it.pose)], it.coarse, cameras[it.camera])
+        good = ok & (rms < cfg.max_edge_rms_px)
+        report.drop(it.camera, "poor_edges", (~good).sum())
+        out.append(ImageTargets(it.camera, it.pose, it.ids[good], refined[good], np.ones(good.sum()), it.coarse[good]))
+    return out
+
+
 def measure_targets(captures, rig: Rig, testfield: TestField, report: CalibrationReport,
                     cfg: CalibrationConfig, cameras: dict | None = None, images: dict | None = None) -> list:
     """Markers of every image; ``cameras`` (IOPs) undistort the edges when given.
@@ -297,10 +311,8 @@ def calibrate(captures: list[Capture], rig: Rig, testfield: TestField, cfg: Cali
         if pass_ == 0:
             # re-measure the corners with edges undistorted by the first solution
             progress("re-measuring targets with the estimated IOPs")
-            report_pass = CalibrationReport()
-            targets = measure_targets(captures, rig, testfield, report_pass, cfg, cameras=cameras, images=cache)
-            _, _ = initial_values(targets, rig, testfield, report_pass, cfg, cameras=cameras)
-            report.dropped, report.dropped_by_camera = report_pass.dropped, report_pass.dropped_by_camera
+            targets = remeasure_targets(targets, cache, cameras, report, cfg)
+            initial_values(targets, rig, testfield, report, cfg, cameras=cameras)
             _keep_calibratable(targets, cameras, rig, report, cfg)
     # figures
     res = np.linalg.norm(sol.residuals, axis=1)
@@ -315,8 +327,11 @@ def calibrate(captures: list[Capture], rig: Rig, testfield: TestField, cfg: Cali
     report.inlier_fraction = float(sol.inlier.mean())
     report.iterations = sol.iterations
     report.drop("all", "blunder", int((~sol.inlier).sum() // 4))
+    by_cam = {}
     for c, a, b, rho in sol.correlations:
-        report.warnings.append(f"camera {cam_ids[c]}: correlation {rho:+.3f} between {a} and {b}")
+        by_cam.setdefault(cam_ids[c], []).append(f"{a}/{b} {rho:+.2f}")
+    for cam_id, pairs in by_cam.items():
+        report.warnings.append(f"camera {cam_id}: high IOP-EOP correlations {', '.join(pairs)}")
     for cam_id in cam_ids:
         sel = (pb.cam == cam_ids.index(cam_id)) & sol.inlier
         spec = rig.cameras[cam_id]
@@ -328,6 +343,8 @@ def calibrate(captures: list[Capture], rig: Rig, testfield: TestField, cfg: Cali
                 report.warnings.append(f"camera {cam_id}: targets cover only {cover:.0%} of the frame")
     extra = {
         "sigmas": {cam_id: dict(zip(bundle.CAM_NAMES, map(float, sol.cam_sigma[i]))) for i, cam_id in enumerate(cam_ids)},
+        # covariance of fx, fy, cx, cy, k1, k2, p1, p2, k3 (px and unitless): what stability tests propagate
+        "iop_covariance": {cam_id: sol.cam_cov[i][:9, :9].tolist() for i, cam_id in enumerate(cam_ids)},
         "residual_rms_px": report.residual_rms_px,
         "residual_rms_by_pose_px": report.residual_rms_by_pose_px,
         "sigma0": sol.sigma0,

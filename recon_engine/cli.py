@@ -11,6 +11,8 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from .formats import FormatError
 
 
@@ -18,7 +20,15 @@ def _cmd_simulate(args) -> int:
     from .simulator.config import preset
     from .simulator.scenario import simulate
 
-    cfg = preset(args.preset, seed=args.seed)
+    changes = []
+    for text in args.lens_change or []:
+        try:
+            cam, rest = text.split(":", 1)
+            what, amount = rest.split("=", 1)
+            changes.append((cam, what, float(amount)))
+        except ValueError:
+            raise ValueError(f"--lens-change {text!r}: expected CAMERA:WHAT=AMOUNT, e.g. A3:pd=0.001") from None
+    cfg = preset(args.preset, seed=args.seed, session=args.session, lens_changes=tuple(changes))
     subject = cfg.subject
     changes = {k: v for k, v in {
         "torso": args.torso, "curve": args.curve, "rotation_deg": args.rotation,
@@ -36,6 +46,50 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
+def _cmd_calibrate(args) -> int:
+    from .calibration import calibrate
+    from .formats import read_capture, read_rig, read_testfield, write_calibration, write_json
+
+    rig = read_rig(args.rig)
+    testfield = read_testfield(args.testfield)
+    captures = [read_capture(c, rig) for c in args.captures]
+    calib, report = calibrate(captures, rig, testfield, progress=lambda m: print(f"  {m}", flush=True))
+    write_calibration(args.out, calib)
+    print(f"calibrated {len(calib.cameras)} of {len(rig.camera_ids)} cameras from {len(captures)} pose(s); "
+          f"sigma0 {report.sigma0:.2f}, {report.observations} corner coordinates, "
+          f"{100 * (1 - report.inlier_fraction):.2f}% rejected")
+    rms = [v for v in report.residual_rms_px.values() if v is not None]
+    print(f"residual RMS per camera: median {np.median(rms):.3f} px, max {np.max(rms):.3f} px")
+    if report.dropped:
+        print("targets dropped: " + ", ".join(f"{k} {v}" for k, v in sorted(report.dropped.items())))
+    for cam_id, why in report.failed_cameras.items():
+        print(f"camera {cam_id} not calibrated: {why}", file=sys.stderr)
+    for w in report.warnings[:10]:
+        print(f"warning: {w}")
+    if len(report.warnings) > 10:
+        print(f"... and {len(report.warnings) - 10} more warnings (in {args.out})")
+    if args.report:
+        write_json(args.report, report.to_dict())
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _cmd_stability(args) -> int:
+    from .formats import read_calibration, write_json
+    from .stability import compare_calibrations
+
+    a, b = read_calibration(args.calibration_a), read_calibration(args.calibration_b)
+    result = compare_calibrations(a, b, threshold_px=args.threshold, criterion=args.criterion)
+    write_json(args.out, result)
+    for cam_id, m in result["cameras"].items():
+        verdict = "stable" if m["stable"] else "UNSTABLE"
+        t = m["threshold_px"]
+        print(f"{cam_id}: ZROT {m['zrot_px']:.3f}/{t['zrot_px']:.2f} px, ROT {m['rot_px']:.3f}/{t['rot_px']:.2f} px, "
+              f"SPR {m['spr_px']:.3f}/{t['spr_px']:.2f} px (measure/threshold) {verdict}")
+    print(f"wrote {args.out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torsoscan", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -44,7 +98,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", choices=["tiny", "paper"], default="tiny",
                    help="tiny: 480x320 px images for tests; paper: the paper's 3000x2000 px rig")
     p.add_argument("--out", required=True, help="scenario folder to write")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="the installation: rig, lenses, test field, patient")
+    p.add_argument("--session", type=int, default=0,
+                   help="what differs between sessions of one installation: poses, arm swings, posture, noise")
+    p.add_argument("--lens-change", action="append", metavar="CAM:WHAT=AMOUNT",
+                   help="disturb a lens since installation: pd (relative), pp_x, pp_y (px) or k1; repeatable")
     p.add_argument("--torso", choices=["makehuman", "parametric"])
     p.add_argument("--curve", choices=["C", "S"], help="scoliotic curve pattern")
     p.add_argument("--rotation", type=float, help="axial rotation at the main apex (deg)")
@@ -52,6 +110,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--progression", type=float, help="rotation added at the later visit (deg)")
     p.add_argument("--force", action="store_true", help="replace OUT if it exists")
     p.set_defaults(func=_cmd_simulate)
+
+    p = sub.add_parser("calibrate", help="calibrate the rig's cameras from test-field captures")
+    p.add_argument("--rig", required=True)
+    p.add_argument("--testfield", required=True)
+    p.add_argument("--out", required=True, help="calibration.json to write")
+    p.add_argument("--report", help="also write the detailed report (dropped targets, residuals) here")
+    p.add_argument("captures", nargs="+", metavar="CAPTURE", help="test-field capture bundles (folders or .zip)")
+    p.set_defaults(func=_cmd_calibrate)
+
+    p = sub.add_parser("stability", help="compare two calibrations camera by camera (ZROT, ROT, SPR)")
+    p.add_argument("--out", required=True)
+    p.add_argument("--threshold", type=float, help="px; default from the calibrations' own residuals")
+    p.add_argument("--criterion", choices=["all", "zrot", "rot", "spr"], default="all",
+                   help="the measure(s) that decide the verdict (default: unstable when any exceeds its threshold)")
+    p.add_argument("calibration_a", metavar="CALIBRATION_A.json")
+    p.add_argument("calibration_b", metavar="CALIBRATION_B.json")
+    p.set_defaults(func=_cmd_stability)
     return parser
 
 

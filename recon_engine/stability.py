@@ -15,12 +15,15 @@ SPR
     bundle meet a plane at the working distance; the second camera is
     resected on those points).
 
-A camera is stable when its measure fits the image measurement precision:
-by default three times the combined residual RMS of the two calibrations,
-with a floor, configurable.
+A camera is stable when every measure fits what the two calibrations can
+resolve: by default the larger of three times their residual RMS and 2.5
+times the measure's spread under no change, propagated from their IOP
+covariances; or one threshold the user gives.
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -78,17 +81,70 @@ def bundle_measures(a: Camera, b: Camera, distance_mm: float = 2500.0) -> dict:
     return {"zrot_px": zrot, "rot_px": rot, "spr_px": spr}
 
 
+IOP_KEYS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+_IOP_STEP = np.array([1e-3, 1e-3, 1e-3, 1e-3, 1e-6, 1e-6, 1e-7, 1e-7, 1e-6])
+
+
+def _with_iop(cam: Camera, v) -> Camera:
+    return replace(cam, fx=v[0], fy=v[1], cx=v[2], cy=v[3], dist=np.asarray(v[4:9]))
+
+
+def _iop(cam: Camera) -> np.ndarray:
+    return np.array([cam.fx, cam.fy, cam.cx, cam.cy, *cam.dist])
+
+
+def null_spread(a: Camera, b: Camera, cov_a, cov_b, distance_mm: float = 2500.0) -> dict:
+    """Standard deviation (px) of each measure when nothing changed, from the IOP covariances.
+
+    Linear propagation: the grid offsets' covariance from both calibrations'
+    IOP covariances; for ROT and SPR, the part a rotation (ROT) or a full
+    resection (SPR) would absorb is projected out first.
+    """
+    grid = _grid(a)
+    xy = pixel_to_normalized(a, grid)
+    rays = np.column_stack([xy, np.ones(len(xy))])
+    n = len(grid)
+
+    def offsets(va, vb, pose=np.zeros(6), plane=False):
+        ca, cb = _with_iop(a, va), _with_iop(b, vb)
+        xy_a = pixel_to_normalized(ca, grid)
+        r = np.column_stack([xy_a, np.ones(n)])
+        if plane:
+            r = r * distance_mm
+        xc = r @ rodrigues(pose[:3]).T + pose[3:]
+        return (_image(cb, xc) - grid).ravel()
+
+    va, vb = _iop(a), _iop(b)
+    Ja = np.column_stack([(offsets(va + e, vb) - offsets(va - e, vb)) / (2 * h)
+                          for e, h in ((np.eye(9)[k] * _IOP_STEP[k], _IOP_STEP[k]) for k in range(9))])
+    Jb = np.column_stack([(offsets(va, vb + e) - offsets(va, vb - e)) / (2 * h)
+                          for e, h in ((np.eye(9)[k] * _IOP_STEP[k], _IOP_STEP[k]) for k in range(9))])
+    C = Ja @ np.asarray(cov_a) @ Ja.T + Jb @ np.asarray(cov_b) @ Jb.T
+
+    def absorbed(G):
+        P = np.eye(2 * n) - G @ np.linalg.pinv(G)
+        return P @ C @ P.T
+
+    steps = np.array([1e-6, 1e-6, 1e-6, 1e-3, 1e-3, 1e-3])
+    G_rot = np.column_stack([(offsets(va, vb, np.eye(6)[k] * steps[k]) - offsets(va, vb, -np.eye(6)[k] * steps[k]))
+                             / (2 * steps[k]) for k in range(3)])
+    G_spr = np.column_stack([(offsets(va, vb, np.eye(6)[k] * steps[k], True) - offsets(va, vb, -np.eye(6)[k] * steps[k], True))
+                             / (2 * steps[k]) for k in range(6)])
+    return {"zrot_px": float(np.sqrt(np.trace(C) / n)),
+            "rot_px": float(np.sqrt(max(np.trace(absorbed(G_rot)), 0) / n)),
+            "spr_px": float(np.sqrt(max(np.trace(absorbed(G_spr)), 0) / n))}
+
+
 def default_threshold(rms_a: float | None, rms_b: float | None, factor: float = 3.0, floor_px: float = 0.25) -> float:
     """The image measurement precision both calibrations show, times ``factor``."""
     vals = [v for v in (rms_a, rms_b) if v is not None]
     if not vals:
         return max(floor_px, factor * 0.15)
-    combined = np.sqrt(np.sum(np.square(vals)) * (2 / len(vals)) / 2)
-    return float(max(floor_px, factor * combined))
+    return float(max(floor_px, factor * np.sqrt(np.mean(np.square(vals)))))
 
 
-def compare_calibrations(calib_a, calib_b, threshold_px: float | None = None, criterion: str = "zrot",
-                         distance_mm: float = 2500.0) -> dict:
+def compare_calibrations(calib_a, calib_b, threshold_px: float | None = None, criterion: str = "all",
+                         distance_mm: float = 2500.0, k_sigma: float = 2.5) -> dict:
     """Stability of every camera both calibrations share.
 
     Parameters
@@ -96,19 +152,24 @@ def compare_calibrations(calib_a, calib_b, threshold_px: float | None = None, cr
     calib_a, calib_b : formats.Calibration
         Earlier and later calibration.
     threshold_px : float, optional
-        Largest offset of a stable camera; by default from the calibrations'
-        own residual RMS (their ``residual_rms_px`` extra key) per camera.
+        Largest offset (px) of a stable camera, for every measure. By default
+        each measure gets its own: the larger of three times the calibrations'
+        residual RMS (``residual_rms_px``) and ``k_sigma`` times the measure's
+        spread under no change, propagated from both calibrations' IOP
+        covariances (``iop_covariance``) where they carry them. A change the
+        calibrations cannot resolve is then not called instability.
     criterion : str
-        Which measure decides the verdict: ``"zrot"`` (default: the cameras of
-        an arm are used with their calibrated EOPs), ``"rot"`` or ``"spr"``.
+        ``"all"`` (default: unstable when any measure exceeds its threshold),
+        or one of ``"zrot"``, ``"rot"``, ``"spr"`` alone.
 
     Returns the spec's ``{"cameras": {id: {zrot_px, rot_px, spr_px, stable}}}``
-    plus the threshold and criterion used per camera.
+    with the thresholds used.
     """
-    if criterion not in CRITERIA:
-        raise ValueError(f"unknown stability criterion {criterion!r}: choose one of {', '.join(CRITERIA)}")
-    res_a = (calib_a.extra or {}).get("residual_rms_px", {}) or {}
-    res_b = (calib_b.extra or {}).get("residual_rms_px", {}) or {}
+    if criterion not in CRITERIA + ("all",):
+        raise ValueError(f"unknown stability criterion {criterion!r}: choose all, {', '.join(CRITERIA)}")
+    extra_a, extra_b = calib_a.extra or {}, calib_b.extra or {}
+    res_a, res_b = extra_a.get("residual_rms_px", {}) or {}, extra_b.get("residual_rms_px", {}) or {}
+    cov_a, cov_b = extra_a.get("iop_covariance", {}) or {}, extra_b.get("iop_covariance", {}) or {}
     out = {}
     for cam_id in sorted(set(calib_a.cameras) & set(calib_b.cameras)):
         a, b = calib_a.cameras[cam_id], calib_b.cameras[cam_id]
@@ -116,10 +177,20 @@ def compare_calibrations(calib_a, calib_b, threshold_px: float | None = None, cr
             raise ValueError(f"camera {cam_id}: image size {a.width}x{a.height} in the first calibration, "
                              f"{b.width}x{b.height} in the second")
         m = bundle_measures(a, b, distance_mm)
-        thr = threshold_px if threshold_px is not None else default_threshold(res_a.get(cam_id), res_b.get(cam_id))
+        if threshold_px is not None:
+            thr = {k: float(threshold_px) for k in m}
+        else:
+            base = default_threshold(res_a.get(cam_id), res_b.get(cam_id))
+            thr = {k: base for k in m}
+            if cam_id in cov_a and cam_id in cov_b:
+                spread = null_spread(a, b, cov_a[cam_id], cov_b[cam_id], distance_mm)
+                m["null_spread_px"] = spread
+                thr = {k: max(base, k_sigma * spread[k]) for k in m}
+        keys = CRITERIA if criterion == "all" else (criterion,)
         m["threshold_px"] = thr
+        m["exceeds"] = [k for k in keys if m[f"{k}_px"] > thr[f"{k}_px"]]
         m["criterion"] = criterion
-        m["stable"] = bool(m[f"{criterion}_px"] <= thr)
+        m["stable"] = not m["exceeds"]
         out[cam_id] = m
     return {"format": "torso-stability/1", "criterion": criterion, "cameras": out,
             "only_in_first": sorted(set(calib_a.cameras) - set(calib_b.cameras)),
@@ -129,9 +200,9 @@ def compare_calibrations(calib_a, calib_b, threshold_px: float | None = None, cr
 def history(calibrations: list, reference: str = "first", **kwargs) -> dict:
     """Measures of every calibration of each camera against its first or previous one.
 
-    ``calibrations`` in time order. Returns ``{camera: [{"index", "calibrated_at",
-    "zrot_px", "rot_px", "spr_px", "stable"}...], "trend": {camera: px per calibration}}``
-    where the trend is the least-squares slope of the deciding measure.
+    ``calibrations`` in time order. Returns ``{"cameras": {camera: [rows]},
+    "trend_px_per_calibration": {camera: {measure: slope}}, "verdict": {camera: bool}}``;
+    the trend is the least-squares slope of each measure over the calibrations.
     """
     if reference not in ("first", "previous"):
         raise ValueError("reference must be 'first' or 'previous'")
@@ -143,9 +214,8 @@ def history(calibrations: list, reference: str = "first", **kwargs) -> dict:
             series.setdefault(cam_id, []).append({"index": i, "calibrated_at": calibrations[i].calibrated_at, **m})
     trend = {}
     for cam_id, rows in series.items():
-        crit = rows[0]["criterion"]
-        y = np.array([r[f"{crit}_px"] for r in rows])
         x = np.array([r["index"] for r in rows], dtype=float)
-        trend[cam_id] = float(np.polyfit(x, y, 1)[0]) if len(rows) >= 2 else None
+        trend[cam_id] = {k: (float(np.polyfit(x, [r[f"{k}_px"] for r in rows], 1)[0]) if len(rows) >= 2 else None)
+                         for k in CRITERIA}
     return {"reference": reference, "cameras": series, "trend_px_per_calibration": trend,
             "verdict": {c: all(r["stable"] for r in rows) for c, rows in series.items()}}

@@ -105,7 +105,7 @@ def refine_corners(image: np.ndarray, corners: np.ndarray, camera: Camera | None
         side = length.mean(axis=1)
         # profile half-width: inside the black border cell (a sixth of the side)
         half = np.clip(0.1 * side, 1.5, 12.0)
-        n_along = 48
+        n_along = int(np.clip(0.7 * np.median(side), 48, 160))  # about one profile per pixel of edge
         t = np.linspace(edge_margin, 1 - edge_margin, n_along)
         n_across = 33
         s_unit = np.linspace(-1.0, 1.0, n_across)

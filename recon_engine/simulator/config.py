@@ -94,16 +94,16 @@ class TestFieldConfig:
     sides: int = 8  # octagonal tower
     circumradius_mm: float = 450.0
     bottom_mm: float = 740.0  # lowest marker row's lower edge above the floor
-    columns: int = 3  # markers per face, across
-    rows: int = 6  # markers per face, up
-    marker_mm: float = 70.0
-    gap_mm: float = 30.0  # white margin between markers and around them
+    columns: int = 5  # markers per face, across
+    rows: int = 10  # markers per face, up
+    marker_mm: float = 40.0  # many small markers: more corners to pin down the principal point
+    gap_mm: float = 20.0  # white margin between markers and around them
     sigma_mm: float = 0.05  # survey precision of one coordinate
     poses: int = 4
     pose_yaw_deg: float = 22.5  # turn between consecutive poses
-    pose_shift_mm: float = 120.0  # max
-    pose_lift_mm: float = 60.0  # max
-    pose_tilt_deg: float = 1.5  # max
+    pose_shift_mm: float = 300.0  # max: large moves put targets at new depths along every camera's view
+    pose_lift_mm: float = 150.0  # max
+    pose_tilt_deg: float = 3.0  # max
     ambient: float = 0.55  # room light, relative to a lit projector pixel
     key_light: float = 0.45  # a soft light from above and behind the cameras
 
@@ -121,7 +121,9 @@ class ScenarioConfig:
     """Everything that defines one simulated scenario; the seed makes it repeatable."""
 
     preset: str = "paper"
-    seed: int = 0
+    seed: int = 0  # the installation: rig, lenses, test field, patient
+    session: int = 0  # what differs between sessions: test-field poses, arm swings, posture, noise
+    lens_changes: tuple = ()  # (camera, "pd" | "pp_x" | "pp_y" | "k1", amount): lenses disturbed since installation
     camera: CameraConfig = field(default_factory=CameraConfig)
     projector: ProjectorConfig = field(default_factory=ProjectorConfig)
     rig: RigConfig = field(default_factory=RigConfig)
@@ -153,7 +155,8 @@ def preset(name: str, **overrides) -> ScenarioConfig:
             principal_point_sigma_px=15.0 * scale,
         )
         proj = ProjectorConfig(width=168, height=126)
-        tf = TestFieldConfig(poses=3)
+        # markers large enough to be read at 2 mm per pixel
+        tf = TestFieldConfig(poses=3, columns=3, rows=6, marker_mm=70.0, gap_mm=30.0)
         cfg = ScenarioConfig(preset="tiny", camera=cam, projector=proj, testfield=tf,
                              captures=(("visit0-a", 0),))
     else:

@@ -6,7 +6,7 @@ World frame: right-handed, mm, Z up, origin on the floor at the rig centre
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -103,6 +103,34 @@ def make_rig(cfg: ScenarioConfig, rng: np.random.Generator, centre_height_mm: fl
         arms.append(Arm(arm_id, tuple(ids), f"P{arm_id}"))
     rig = Rig(rc.serial, tuple(arms), specs)
     return RigTruth(rig, cameras, projectors, pivots)
+
+
+def apply_lens_changes(truth: RigTruth, changes) -> RigTruth:
+    """The rig with some lenses disturbed since installation.
+
+    ``changes``: (camera id, what, amount) with what ``"pd"`` (relative change
+    of the principal distance), ``"pp_x"`` / ``"pp_y"`` (principal point shift,
+    px) or ``"k1"`` (added to k1).
+    """
+    if not changes:
+        return truth
+    cameras = dict(truth.cameras)
+    for cam_id, what, amount in changes:
+        if cam_id not in cameras:
+            raise ValueError(f"lens change for unknown camera {cam_id!r}")
+        c = cameras[cam_id]
+        if what == "pd":
+            c = replace(c, fx=c.fx * (1 + amount), fy=c.fy * (1 + amount))
+        elif what == "pp_x":
+            c = replace(c, cx=c.cx + amount)
+        elif what == "pp_y":
+            c = replace(c, cy=c.cy + amount)
+        elif what == "k1":
+            c = replace(c, dist=c.dist + np.array([amount, 0, 0, 0, 0]))
+        else:
+            raise ValueError(f"unknown lens change {what!r}: use pd, pp_x, pp_y or k1")
+        cameras[cam_id] = c
+    return replace(truth, cameras=cameras)
 
 
 def draw_arm_displacements(cfg: ScenarioConfig, rng: np.random.Generator, truth: RigTruth) -> dict:

@@ -30,7 +30,7 @@ from ..formats import Calibration, write_calibration, write_capture, write_json,
 from .bodies import Body, Posture, curve_profiles, load_body, pose_body, skin_albedo
 from .config import ScenarioConfig
 from .render import Lighting, PreparedLighting, Scene, Surface, render
-from .rig import RigTruth, displace, draw_arm_displacements, make_rig, rotation_about
+from .rig import RigTruth, apply_lens_changes, displace, draw_arm_displacements, make_rig, rotation_about
 from .testfield import Tower, draw_poses, make_tower, surveyed
 
 CAPTURED_AT = "2026-11-22T09:00:00+00:00"
@@ -136,17 +136,20 @@ def _simulate(out, cfg, force, progress, n_workers, pool) -> dict:
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
     t_start = time.perf_counter()
-    seeds = np.random.SeedSequence(cfg.seed).spawn(8)
-    rng_rig, rng_tf, rng_body, rng_bg, rng_arms, rng_pose, _, rng_place = (
-        np.random.default_rng(s) for s in seeds)
+    # the installation (rig, test field, patient, room) comes from the seed; what
+    # differs between sessions (test-field poses, arm swings, posture, noise)
+    # from the seed and the session, so two sessions share one rig
+    rng_rig, rng_tf, rng_body, rng_bg = (np.random.default_rng(s) for s in np.random.SeedSequence(cfg.seed).spawn(4))
+    rng_poses, rng_arms, rng_pose, rng_place = (
+        np.random.default_rng(s) for s in np.random.SeedSequence([cfg.seed, 1000 + cfg.session]).spawn(4))
 
     body = load_body(cfg.subject)
     albedo = skin_albedo(body.vertices, cfg.subject, rng_body)
     centre_z = 0.5 * (body.z_sacrum + body.z_c7)
-    truth = make_rig(cfg, rng_rig, centre_z)
+    truth = apply_lens_changes(make_rig(cfg, rng_rig, centre_z), cfg.lens_changes)
     tower = make_tower(cfg.testfield, rng_tf)
     testfield = surveyed(tower, cfg.testfield, rng_tf)
-    poses = draw_poses(cfg.testfield, rng_tf)
+    poses = draw_poses(cfg.testfield, rng_poses)
     background = _background(cfg, rng_bg)
     rig = truth.rig
 
@@ -160,7 +163,8 @@ def _simulate(out, cfg, force, progress, n_workers, pool) -> dict:
         "frame": "world = testfield pose 0",
         "poses": [{"pose": k, "R": R.tolist(), "t": t.tolist()} for k, (R, t) in enumerate(poses)]})
 
-    summary = {"out": str(out), "preset": cfg.preset, "seed": cfg.seed, "captures": [], "timings_s": {}}
+    summary = {"out": str(out), "preset": cfg.preset, "seed": cfg.seed, "session": cfg.session,
+               "captures": [], "timings_s": {}}
     cc = cfg.camera
 
     def render_capture(name, surfaces, lighting, subsurface, cameras, exposure, capture_kw):
@@ -169,7 +173,7 @@ def _simulate(out, cfg, force, progress, n_workers, pool) -> dict:
         ids = rig.camera_ids
         groups = [ids[k::n_workers] for k in range(n_workers)]
         jobs = [(surfaces, lighting, subsurface, {c: cameras[c] for c in g}, cc, exposure,
-                 {c: (cfg.seed, 1, capture_index, ids.index(c)) for c in g},
+                 {c: (cfg.seed, cfg.session, 1, capture_index, ids.index(c)) for c in g},
                  {c: (cfg.seed, 2, ids.index(c)) for c in g}) for g in groups if g]
         images = {}
         for part in (pool.map(_render_group, jobs) if pool else map(_render_group, jobs)):
