@@ -68,6 +68,7 @@ class CalibrationReport:
     observations: int = 0
     inlier_fraction: float = 1.0
     iterations: int = 0
+    targets: list = field(default_factory=list, repr=False)  # the measurements adjusted (not serialized)
 
     def drop(self, camera, reason, n=1):
         if n <= 0:
@@ -77,7 +78,7 @@ class CalibrationReport:
         cam[reason] = cam.get(reason, 0) + int(n)
 
     def to_dict(self):
-        return {k: v for k, v in self.__dict__.items()}
+        return {k: v for k, v in self.__dict__.items() if k != "targets"}
 
 
 def check_captures(captures: list[Capture], rig: Rig, testfield: TestField) -> None:
@@ -326,6 +327,7 @@ def calibrate(captures: list[Capture], rig: Rig, testfield: TestField, cfg: Cali
     report.observations = int(len(pb.uv))
     report.inlier_fraction = float(sol.inlier.mean())
     report.iterations = sol.iterations
+    report.targets = targets
     report.drop("all", "blunder", int((~sol.inlier).sum() // 4))
     by_cam = {}
     for c, a, b, rho in sol.correlations:

@@ -177,15 +177,16 @@ def compare_calibrations(calib_a, calib_b, threshold_px: float | None = None, cr
             raise ValueError(f"camera {cam_id}: image size {a.width}x{a.height} in the first calibration, "
                              f"{b.width}x{b.height} in the second")
         m = bundle_measures(a, b, distance_mm)
+        names = list(m)
         if threshold_px is not None:
-            thr = {k: float(threshold_px) for k in m}
+            thr = {k: float(threshold_px) for k in names}
         else:
             base = default_threshold(res_a.get(cam_id), res_b.get(cam_id))
-            thr = {k: base for k in m}
+            thr = {k: base for k in names}
             if cam_id in cov_a and cam_id in cov_b:
                 spread = null_spread(a, b, cov_a[cam_id], cov_b[cam_id], distance_mm)
                 m["null_spread_px"] = spread
-                thr = {k: max(base, k_sigma * spread[k]) for k in m}
+                thr = {k: max(base, k_sigma * spread[k]) for k in names}
         keys = CRITERIA if criterion == "all" else (criterion,)
         m["threshold_px"] = thr
         m["exceeds"] = [k for k in keys if m[f"{k}_px"] > thr[f"{k}_px"]]
