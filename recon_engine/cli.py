@@ -127,7 +127,43 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("calibration_a", metavar="CALIBRATION_A.json")
     p.add_argument("calibration_b", metavar="CALIBRATION_B.json")
     p.set_defaults(func=_cmd_stability)
+
+    p = sub.add_parser("reconstruct-arm", help="the point surface one arm sees in a torso capture")
+    p.add_argument("--rig", required=True)
+    p.add_argument("--calibration", required=True)
+    p.add_argument("--arm", required=True, help="arm id, e.g. A")
+    p.add_argument("--out", required=True, help="PLY to write (points, normals, patches, sigma_mm, rays)")
+    p.add_argument("--report", help="report JSON (default: OUT with .json)")
+    p.add_argument("capture", metavar="CAPTURE", help="torso capture bundle (folder or .zip)")
+    p.set_defaults(func=_cmd_reconstruct_arm)
     return parser
+
+
+def _cmd_reconstruct_arm(args) -> int:
+    from .formats import read_calibration, read_capture, read_rig, write_json
+    from .reconstruction import reconstruct_arm
+    from .surface import write_ply
+
+    rig = read_rig(args.rig)
+    calibration = read_calibration(args.calibration)
+    if calibration.rig != rig.serial:
+        raise FormatError(args.calibration, f"rig is {calibration.rig!r}, but rig.json is {rig.serial!r}")
+    capture = read_capture(args.capture, rig)
+    if capture.kind != "torso":
+        raise FormatError(capture.source, f"kind is {capture.kind!r}: reconstruction needs a 'torso' capture")
+    surface, report = reconstruct_arm(capture, rig, calibration, args.arm, progress=lambda m: print(f"  {m}", flush=True))
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_ply(out, surface.points, surface.normals, surface.faces, surface.data,
+              comments=[f"torsoscan arm {args.arm} surface, mm, frame: {calibration.frame}"])
+    report_path = Path(args.report) if args.report else out.with_suffix(".json")
+    write_json(report_path, report)
+    print(f"arm {args.arm}: {report['points']} points ({report['patches']} patches), "
+          f"median precision {report['sigma_mm_median']:.3f} mm, {report['seconds']['total']:.1f} s")
+    for cam_id, why in report["unusable_images"].items():
+        print(f"image {cam_id} unusable: {why}", file=sys.stderr)
+    print(f"wrote {out} and {report_path}")
+    return 0
 
 
 def main(argv=None) -> int:

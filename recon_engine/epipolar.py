@@ -139,3 +139,19 @@ def rectify_pair(left: Camera, right: Camera, scale: float = 1.0) -> RectifiedPa
     c_right = np.array([-boxes[1][:, 0].min(), -v0])
     size = (int(np.ceil(max(widths))) + 1, int(np.ceil(v1 - v0)) + 1)
     return RectifiedPair(left, right, R, float(f), c_left, c_right, size)
+
+
+def rig_centre(cameras) -> np.ndarray:
+    """The point closest to all cameras' optical axes (world, mm): where the rig looks."""
+    from .multiview import linear_intersection
+
+    centres = np.array([c.C for c in cameras])
+    axes = np.array([c.R[2] for c in cameras])
+    return linear_intersection(centres, axes[None], np.ones((1, len(cameras)), bool))[0]
+
+
+def subject_depth_bounds(pair: RectifiedPair, centre, radius_mm: float) -> tuple[float, float]:
+    """Depth range (mm, along the rectified viewing axis) of a subject within ``radius_mm`` of ``centre``."""
+    z = pair.R_rect[2]
+    depths = [float(z @ (np.asarray(centre) - c.C)) for c in (pair.left, pair.right)]
+    return max(min(depths) - radius_mm, 1.0), max(depths) + radius_mm

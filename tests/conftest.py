@@ -64,3 +64,12 @@ def calibration_2(rig_session_2):
 @pytest.fixture(scope="session")
 def calibration_disturbed(rig_disturbed):
     return _calibrate(rig_disturbed)
+
+
+@pytest.fixture(scope="session")
+def torso_scenario(tmp_path_factory):
+    """A tiny scenario with one torso capture (visit0-a), arms displaced."""
+    out = tmp_path_factory.mktemp("torso") / "scenario"
+    simulate(out, preset("tiny", seed=0), progress=lambda msg: None)
+    return out
+

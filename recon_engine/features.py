@@ -1,0 +1,134 @@
+"""Region of interest and Harris features.
+
+The region of interest is where the projected pattern lights the subject:
+there the local contrast is high. The background, which the projectors
+do not reach, and the subject's cast shadows have low contrast and are not
+searched. A user-drawn polygon per image can narrow it further.
+
+Features are Harris corners of the (rectified) image inside the region of
+interest: non-maximum suppression over the minimum spacing, a relative
+response threshold, and a subpixel position from a quadratic fit of the
+response around each maximum.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def local_contrast(image: np.ndarray, window: int) -> np.ndarray:
+    """Standard deviation of the grey values over a ``window``-square neighbourhood (grey levels)."""
+    img = np.asarray(image, dtype=np.float32)
+    m = cv2.boxFilter(img, cv2.CV_32F, (window, window), borderType=cv2.BORDER_REFLECT)
+    m2 = cv2.boxFilter(img * img, cv2.CV_32F, (window, window), borderType=cv2.BORDER_REFLECT)
+    return np.sqrt(np.maximum(m2 - m * m, 0))
+
+
+def region_of_interest(image: np.ndarray, window: int = 15, min_contrast: float | None = None,
+                       min_area_px: int | None = None, polygon=None) -> np.ndarray:
+    """Boolean mask of the pattern-lit subject in ``image``.
+
+    Parameters
+    ----------
+    image : (H, W) array
+        Grey image (any dtype; 8-bit levels assumed for the defaults).
+    window : int
+        Side (px) of the neighbourhood of the contrast measure; a few pattern
+        cells wide.
+    min_contrast : float, optional
+        Standard deviation (grey levels) below which a pixel is not lit by the
+        pattern. Default: a third of the 95th percentile of the image's
+        contrast, and at least 4 levels (well above sensor noise).
+    min_area_px : int, optional
+        Connected parts smaller than this are dropped (specular spots, the
+        test field's edge); default 2% of the largest part.
+    polygon : (K, 2) array, optional
+        A user-drawn outline (px, the image's own coordinates); only its
+        inside is kept.
+    """
+    c = local_contrast(image, window)
+    if min_contrast is None:
+        min_contrast = max(4.0, float(np.percentile(c, 95)) / 3.0)
+    mask = (c >= min_contrast).astype(np.uint8)
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (window, window))
+    mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, k)
+    # erode half a window: the contrast window smears the lit border outwards
+    mask = cv2.erode(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (window // 2 * 2 + 1,) * 2))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    if n > 1:
+        areas = stats[1:, cv2.CC_STAT_AREA]
+        floor = min_area_px if min_area_px is not None else 0.02 * areas.max()
+        keep = np.zeros(n, dtype=bool)
+        keep[1:] = areas >= floor
+        mask = keep[labels].astype(np.uint8)
+    if polygon is not None:
+        poly = np.zeros_like(mask)
+        cv2.fillPoly(poly, [np.round(np.asarray(polygon, dtype=float)).astype(np.int32).reshape(-1, 1, 2)], 1)
+        mask &= poly
+    return mask.astype(bool)
+
+
+def harris_response(image: np.ndarray, block_size: int = 5, ksize: int = 3, k: float = 0.04) -> np.ndarray:
+    """OpenCV's Harris corner response of a grey image (float32)."""
+    return cv2.cornerHarris(np.asarray(image, dtype=np.float32), block_size, ksize, k)
+
+
+def harris_features(image: np.ndarray, mask: np.ndarray | None = None, spacing: int = 6,
+                    relative_threshold: float = 0.01, block_size: int = 5, max_features: int | None = None):
+    """Harris corners inside ``mask``, at least ``spacing`` px apart.
+
+    Parameters
+    ----------
+    image : (H, W) array
+        Grey image.
+    mask : (H, W) bool array, optional
+        Region of interest; features only where it is true.
+    spacing : int
+        Minimum distance (px, Chebyshev) between two features: the density
+        parameter (one feature per ``spacing``² px at most).
+    relative_threshold : float
+        Responses below this fraction of the 99th percentile response are not
+        corners.
+    block_size : int
+        Neighbourhood (px) of the structure tensor.
+    max_features : int, optional
+        Keep only the strongest this many.
+
+    Returns ``(xy, response)``: subpixel positions (N, 2) px (x = column,
+    y = row) and their Harris responses (N,), strongest first.
+    """
+    R = harris_response(image, block_size)
+    if mask is not None:
+        R = np.where(mask, R, 0).astype(np.float32)
+    positive = R[R > 0]
+    if positive.size == 0:
+        return np.zeros((0, 2)), np.zeros(0)
+    floor = relative_threshold * float(np.percentile(positive, 99))
+    size = 2 * (spacing // 2) + 1
+    peak = (R == cv2.dilate(R, np.ones((size, size), np.uint8))) & (R > floor)
+    # not on the outermost row/column: the quadratic fit needs neighbours
+    peak[[0, -1], :] = False
+    peak[:, [0, -1]] = False
+    rows, cols = np.nonzero(peak)
+    # plateaus give several equal maxima: keep one per spacing cell
+    cell = (rows // max(spacing, 1)) * (R.shape[1] // max(spacing, 1) + 1) + cols // max(spacing, 1)
+    resp = R[rows, cols]
+    order = np.lexsort((-resp, cell))
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = cell[order][1:] != cell[order][:-1]
+    sel = order[first]
+    rows, cols, resp = rows[sel], cols[sel], resp[sel]
+    # subpixel: a parabola through the response along each axis
+    c0 = R[rows, cols]
+    dx = 0.5 * (R[rows, cols + 1] - R[rows, cols - 1])
+    dxx = R[rows, cols + 1] - 2 * c0 + R[rows, cols - 1]
+    dy = 0.5 * (R[rows + 1, cols] - R[rows - 1, cols])
+    dyy = R[rows + 1, cols] - 2 * c0 + R[rows - 1, cols]
+    ox = np.where(dxx < 0, -dx / np.where(dxx < 0, dxx, -1), 0)
+    oy = np.where(dyy < 0, -dy / np.where(dyy < 0, dyy, -1), 0)
+    xy = np.column_stack([cols + np.clip(ox, -0.5, 0.5), rows + np.clip(oy, -0.5, 0.5)])
+    order = np.argsort(-resp, kind="stable")
+    if max_features is not None:
+        order = order[:max_features]
+    return xy[order], resp[order]

@@ -1,0 +1,303 @@
+"""Normalized cross-correlation matching along the epipolar rows of a rectified pair.
+
+For each point of the left image, a window around it is compared with every
+window of the right image along its row (and a few rows either side, to
+absorb calibration errors) over a disparity range. Two stages keep the long
+search honest and short:
+
+1. a sparse subset of the points, with a larger window for distinctiveness,
+   searches the whole disparity range that the rig geometry and the
+   subject's depth bounds allow; matches that disagree with their neighbours
+   are dropped;
+2. every point searches a short range around the disparity its matched
+   neighbours predict.
+
+Each match has a subpixel peak (parabola fits across columns and rows), a
+minimum correlation, a uniqueness test (second peak against the first) and a
+left-right consistency check (the right point matched back must land on the
+left point).
+
+All coordinates are rectified pixels (x = column, y = row).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+@dataclass(frozen=True)
+class MatchingConfig:
+    # windows of a few projector pixels: larger ones lose correlation to the
+    # different foreshortening of the skin in converging views
+    window: int = 7  # px, side of the correlation window (about 2.5 projector pixels)
+    sparse_window: int = 13  # px, window of the full-range search of stage 1
+    sparse_step: int = 4  # every n-th point searches the full range
+    band: int = 2  # rows searched either side of the epipolar row
+    min_ncc: float = 0.6  # weaker peaks are not matches (least-squares matching checks again)
+    sparse_min_ncc: float = 0.7
+    uniqueness: float = 0.9  # the second peak must stay below this fraction of the first
+    dense_radius: int = 6  # px, stage-2 search either side of the predicted disparity
+    neighbours: int = 8  # stage-1 matches that predict a point's disparity
+    neighbour_tolerance_px: float = 3.0  # stage-1 match dropped when further from its neighbours' median
+    lr_tolerance_px: float = 0.5  # left-right check
+    refine: bool = True  # least-squares matching after the correlation peak
+    min_lsm_rho: float = 0.8  # least-squares matching must end at least this correlated
+    max_lsm_sigma_px: float = 0.1  # and this precise (x shift, 1-sigma)
+    chunk: int = 4000  # points per vectorized block (memory)
+
+
+def sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Exact bilinear samples (float32) of ``image`` at float positions; 0 outside."""
+    img = image if image.dtype == np.float32 else image.astype(np.float32)
+    h, w = img.shape
+    x0 = np.floor(x).astype(np.int64)
+    y0 = np.floor(y).astype(np.int64)
+    fx = (x - x0).astype(np.float32)
+    fy = (y - y0).astype(np.float32)
+    inside = (x0 >= 0) & (y0 >= 0) & (x0 < w - 1) & (y0 < h - 1)
+    x0 = np.clip(x0, 0, w - 2)
+    y0 = np.clip(y0, 0, h - 2)
+    flat = img.ravel()
+    i = y0 * w + x0
+    v = (flat[i] * (1 - fx) + flat[i + 1] * fx) * (1 - fy) + (flat[i + w] * (1 - fx) + flat[i + w + 1] * fx) * fy
+    return np.where(inside, v, 0).astype(np.float32)
+
+
+def _box(a: np.ndarray, win: int) -> np.ndarray:
+    """Sums over ``win``×``win`` windows of the last two axes (valid part)."""
+    c = np.cumsum(np.cumsum(a, axis=-2, dtype=np.float64), axis=-1)
+    c = np.pad(c, [(0, 0)] * (a.ndim - 2) + [(1, 0), (1, 0)])
+    return c[..., win:, win:] - c[..., :-win, win:] - c[..., win:, :-win] + c[..., :-win, :-win]
+
+
+def _parabola(m, l, r):
+    den = l - 2 * m + r
+    off = np.where(den < 0, 0.5 * (l - r) / np.where(den < 0, den, -1), 0.0)
+    return np.clip(off, -0.5, 0.5)
+
+
+def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.ndarray, radius: int,
+               band: int, window: int, exclude: int = 2) -> dict:
+    """Best NCC match of each left point in the right image around ``x_pred``.
+
+    Parameters
+    ----------
+    left, right : (H, W) arrays
+        Rectified images.
+    xy : (N, 2) array
+        Left points (px).
+    x_pred : (N,) array
+        Centre of each search along the row (px, right image).
+    radius : int
+        Columns searched either side of ``x_pred``.
+    band : int
+        Rows searched either side of the point's own row.
+    window : int
+        Side of the correlation window (odd, px).
+    exclude : int
+        Columns either side of the peak left out of the second peak.
+
+    Returns ``{"xy": (N, 2) right points, "ncc": (N,), "second": (N,),
+    "at_edge": (N,) bool}``; ``at_edge`` means the peak lies on the border of
+    the searched range, so the true peak may lie outside it.
+    """
+    h = window // 2
+    n = len(xy)
+    off = np.arange(-h, h + 1, dtype=float)
+    lx = xy[:, 0, None, None] + off[None, None, :]
+    ly = xy[:, 1, None, None] + off[None, :, None]
+    L = sample(left, np.broadcast_to(lx, (n, window, window)), np.broadcast_to(ly, (n, window, window)))
+    L = L - L.mean(axis=(1, 2), keepdims=True)
+    Lnorm = np.sqrt(np.sum(L * L, axis=(1, 2)))
+    x0 = np.round(x_pred)
+    cols = np.arange(-radius - h, radius + h + 1, dtype=float)
+    rows = np.arange(-band - h, band + h + 1, dtype=float)
+    sx = x0[:, None, None] + cols[None, None, :]
+    sy = xy[:, 1, None, None] + rows[None, :, None]
+    S = sample(right, np.broadcast_to(sx, (n, len(rows), len(cols))), np.broadcast_to(sy, (n, len(rows), len(cols))))
+    B, D = 2 * band + 1, 2 * radius + 1
+    num = np.zeros((n, B, D), np.float32)
+    # loop over the window's offsets (not the points): each step is one array operation
+    for i in range(window):
+        for j in range(window):
+            num += L[:, i, j, None, None] * S[:, i:i + B, j:j + D]
+    s1 = _box(S, window)
+    s2 = _box(S * S, window)
+    var = np.maximum(s2 - s1 * s1 / window ** 2, 0)
+    den = Lnorm[:, None, None] * np.sqrt(var)
+    ncc = np.where(den > 1e-6, num / np.maximum(den, 1e-12), -1.0)
+    flat = ncc.reshape(n, -1)
+    k = np.argmax(flat, axis=1)
+    kb, kd = np.divmod(k, D)
+    best = flat[np.arange(n), k]
+    # second peak: the best column at least ``exclude`` away from the first, any row
+    colmax = ncc.max(axis=1)
+    far = np.abs(np.arange(D)[None, :] - kd[:, None]) > exclude
+    second = np.where(far, colmax, -1.0).max(axis=1)
+    at_edge = (kd == 0) | (kd == D - 1)
+    idx = np.arange(n)
+    kd_in = np.clip(kd, 1, D - 2)
+    dx = _parabola(best, ncc[idx, kb, kd_in - 1], ncc[idx, kb, kd_in + 1])
+    dx = np.where(at_edge, 0.0, dx)
+    if band > 0:
+        kb_in = np.clip(kb, 1, B - 2)
+        dy = _parabola(best, ncc[idx, kb_in - 1, kd], ncc[idx, kb_in + 1, kd])
+        dy = np.where((kb == 0) | (kb == B - 1), 0.0, dy)
+    else:
+        dy = np.zeros(n)
+    out = np.column_stack([x0 - radius + kd + dx, xy[:, 1] - band + kb + dy])
+    return {"xy": out, "ncc": best.astype(float), "second": second.astype(float), "at_edge": at_edge}
+
+
+def _chunked(fn, n, chunk, **arrays):
+    parts = [fn(**{k: v[s:s + chunk] if isinstance(v, np.ndarray) and len(v) == n else v
+                   for k, v in arrays.items()}) for s in range(0, n, chunk)]
+    if not parts:
+        return {"xy": np.zeros((0, 2)), "ncc": np.zeros(0), "second": np.zeros(0), "at_edge": np.zeros(0, bool)}
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def _search(left, right, xy, x_pred, radius, band, window, cfg):
+    n = len(xy)
+    return _chunked(lambda **a: ncc_search(left, right, a["xy"], a["x_pred"], radius, band, window),
+                    n, max(1, cfg.chunk * 121 // (window * window * max(1, radius // 8 + 1))), xy=xy, x_pred=x_pred)
+
+
+def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_range: tuple[float, float],
+                 cfg: MatchingConfig | None = None) -> dict:
+    """Match left points ``xy`` (N, 2) into the right image of a rectified pair.
+
+    ``disparity_range`` is (min, max) of ``x_left - x_right`` (px) for the
+    subject's depth bounds. With ``cfg.refine`` the correlation peaks are
+    refined by least-squares matching and ``ncc`` is its final correlation.
+    Returns ``{"xy": (N, 2) right points, "ncc": (N,),
+    "valid": (N,) bool, "reason": (N,) str}``; ``reason`` says why a point
+    is not matched ("" when it is).
+    """
+    cfg = cfg or MatchingConfig()
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+    n = len(xy)
+    reason = np.full(n, "", dtype=object)
+    out_xy = np.full((n, 2), np.nan)
+    out_ncc = np.full(n, -1.0)
+    if n == 0:
+        return {"xy": out_xy, "ncc": out_ncc, "valid": np.zeros(0, bool), "reason": reason}
+    dmin, dmax = sorted(disparity_range)
+    # stage 1: a sparse subset over the whole range, big window
+    sparse = np.arange(0, n, max(1, cfg.sparse_step))
+    radius = int(np.ceil((dmax - dmin) / 2)) + 1
+    r1 = _search(left, right, xy[sparse], xy[sparse, 0] - 0.5 * (dmin + dmax), radius, cfg.band,
+                 cfg.sparse_window, cfg)
+    ok1 = (r1["ncc"] >= cfg.sparse_min_ncc) & (r1["second"] < cfg.uniqueness * r1["ncc"]) & ~r1["at_edge"]
+    d1 = xy[sparse, 0] - r1["xy"][:, 0]
+    anchors = xy[sparse][ok1]
+    d_anchor = d1[ok1]
+    if len(anchors) >= 3:
+        # drop anchors that disagree with their neighbours (a wrong peak of the repeating pattern)
+        k = min(cfg.neighbours + 1, len(anchors))
+        _, nb = cKDTree(anchors).query(anchors, k=k)
+        med = np.median(d_anchor[nb[:, 1:]], axis=1)
+        keep = np.abs(d_anchor - med) <= cfg.neighbour_tolerance_px
+        anchors, d_anchor = anchors[keep], d_anchor[keep]
+    if len(anchors) < 3:
+        reason[:] = "no reliable disparity in the neighbourhood"
+        return {"xy": out_xy, "ncc": out_ncc, "valid": np.zeros(n, bool), "reason": reason}
+    # stage 2: every point, short range around the disparity its anchors predict
+    k = min(cfg.neighbours, len(anchors))
+    dist, nb = cKDTree(anchors).query(xy, k=k)
+    nb = nb.reshape(n, -1)
+    d_pred = np.median(d_anchor[nb], axis=1)
+    r2 = _search(left, right, xy, xy[:, 0] - d_pred, cfg.dense_radius, cfg.band, cfg.window, cfg)
+    # left-right check: the right point matched back into the left image
+    back = _search(right, left, r2["xy"], xy[:, 0], 2, 1, cfg.window, cfg)
+    lr = np.hypot(back["xy"][:, 0] - xy[:, 0], back["xy"][:, 1] - xy[:, 1])
+    far = np.asarray(dist).reshape(n, -1)[:, -1]
+    checks = [
+        (r2["at_edge"], "peak at the edge of the search range"),
+        (r2["ncc"] < cfg.min_ncc, "correlation below the minimum"),
+        (r2["second"] >= cfg.uniqueness * r2["ncc"], "not unique (second peak too close)"),
+        (lr > cfg.lr_tolerance_px, "left-right check failed"),
+        (far > 8 * cfg.sparse_window * max(1, cfg.sparse_step) ** 0.5, "no reliable disparity in the neighbourhood"),
+    ]
+    for bad, why in checks:
+        reason[(reason == "") & bad] = why
+    valid = reason == ""
+    out_xy[valid] = r2["xy"][valid]
+    out_ncc[:] = r2["ncc"]
+    if cfg.refine and valid.any():
+        idx = np.nonzero(valid)[0]
+        lsm = least_squares_refine(left, right, xy[idx], r2["xy"][idx], window=cfg.window)
+        good = lsm["converged"] & (lsm["rho"] >= cfg.min_lsm_rho) & (lsm["sigma"] <= cfg.max_lsm_sigma_px)
+        reason[idx[~good]] = "least-squares matching failed"
+        out_xy[idx[good]] = lsm["xy"][good]
+        out_xy[idx[~good]] = np.nan
+        out_ncc[idx] = lsm["rho"]
+        valid = reason == ""
+    return {"xy": out_xy, "ncc": out_ncc, "valid": valid, "reason": reason}
+
+
+def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, xy_right: np.ndarray,
+                         window: int = 11, iterations: int = 8, shift_y: bool = True) -> dict:
+    """Adaptive least-squares matching (Gruen 1985) of windows already matched to about a pixel.
+
+    The right window is an affine image of the left one along the row
+    (``x' = x + a0 + a1·dx + a2·dy``, ``y' = y + b0 (+ b1·dx + b2·dy)``)
+    with a radiometric gain and offset; the affine terms absorb the
+    different foreshortening of a surface patch in the two images, which
+    biases a plain correlation peak. All points are solved at once
+    (Gauss–Newton, batched 8×8 normal equations).
+
+    Returns ``{"xy": (N, 2) refined right points, "sigma": (N,) px standard
+    deviation of the x shift, "rho": (N,) final correlation, "converged": (N,) bool}``.
+    """
+    h = window // 2
+    n = len(xy_left)
+    off = np.arange(-h, h + 1, dtype=float)
+    dx = np.broadcast_to(off[None, None, :], (n, window, window))
+    dy = np.broadcast_to(off[None, :, None], (n, window, window))
+    L = sample(left, xy_left[:, 0, None, None] + dx, xy_left[:, 1, None, None] + dy).reshape(n, -1).astype(float)
+    gx_img = np.gradient(right.astype(np.float32), axis=1)
+    gy_img = np.gradient(right.astype(np.float32), axis=0)
+    # parameters: a0 a1 a2 b0 b1 b2 gain offset
+    p = np.zeros((n, 8))
+    p[:, 6] = 1.0
+    base = np.asarray(xy_right, dtype=float).copy()
+    ddx, ddy = dx.reshape(n, -1), dy.reshape(n, -1)
+    active = np.ones(n, bool)
+    sigma = np.full(n, np.nan)
+    free = [0, 1, 2, 3, 6, 7] if shift_y else [0, 1, 2, 6, 7]
+    for _ in range(iterations):
+        x = base[:, 0, None] + ddx + p[:, 0, None] + p[:, 1, None] * ddx + p[:, 2, None] * ddy
+        y = base[:, 1, None] + ddy + p[:, 3, None] + p[:, 4, None] * ddx + p[:, 5, None] * ddy
+        Rv = sample(right, x, y).astype(float)
+        gx = sample(gx_img, x, y).astype(float) * p[:, 6, None]
+        gy = sample(gy_img, x, y).astype(float) * p[:, 6, None]
+        r = L - (p[:, 6, None] * Rv + p[:, 7, None])
+        J = np.stack([gx, gx * ddx, gx * ddy, gy, gy * ddx, gy * ddy, Rv, np.ones_like(Rv)], axis=2)[:, :, free]
+        N = np.einsum("nki,nkj->nij", J, J)
+        b = np.einsum("nki,nk->ni", J, r)
+        N = N + np.eye(len(free))[None] * 1e-9 * np.trace(N, axis1=1, axis2=2)[:, None, None]
+        try:
+            step = np.linalg.solve(N, b[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            break
+        step[~active] = 0
+        p[:, free] += step
+        # a step larger than a pixel means the window slid off the match
+        active &= np.abs(step[:, 0]) < 1.0
+        if np.all(np.abs(step[active, 0]) < 1e-3):
+            break
+    dof = window * window - len(free)
+    s0 = np.sqrt(np.sum(r * r, axis=1) / dof)
+    Ninv = np.linalg.inv(N)
+    sigma = s0 * np.sqrt(np.abs(Ninv[:, 0, 0]))
+    Rc = Rv - Rv.mean(axis=1, keepdims=True)
+    Lc = L - L.mean(axis=1, keepdims=True)
+    rho = np.sum(Rc * Lc, axis=1) / np.maximum(np.sqrt(np.sum(Rc ** 2, axis=1) * np.sum(Lc ** 2, axis=1)), 1e-12)
+    moved = np.hypot(p[:, 0], p[:, 3])
+    converged = active & (moved < 1.5) & (np.abs(p[:, 1]) < 0.5) & (np.abs(p[:, 2]) < 0.5) & (p[:, 6] > 0.2)
+    out = base + p[:, [0, 3]]
+    return {"xy": out, "sigma": sigma, "rho": rho, "converged": converged}

@@ -1,0 +1,151 @@
+"""Reconstruction of one arm: from its images and calibration to a point surface.
+
+Stages (each its own module): epipolar resampling of neighbouring images
+(``epipolar``), region of interest and Harris features (``features``), NCC
+matching along the epipolar rows with least-squares refinement
+(``matching``), tracking through the arm's images (``tracking``),
+multi-ray intersection (``multiview``) and the TIN surface (``surface``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from .epipolar import rig_centre, subject_depth_bounds
+from .features import local_contrast
+from .formats import Calibration, Capture, FormatError, Rig, load_image
+from .multiview import IntersectionConfig, intersect
+from .surface import PointSurface, make_surface
+from .tracking import TrackingConfig, track_images
+
+ROI_KEY = "roi_polygons"  # capture.json: {"A1": [[x, y], ...]} user-drawn regions (px)
+
+
+@dataclass(frozen=True)
+class ReconstructionConfig:
+    subject_radius_mm: float = 400.0  # the subject lies within this of the rig centre (sets the disparity range)
+    max_sigma_mm: float = 1.0  # points less precise than this (1-sigma, largest axis) are dropped
+    min_contrast: float = 3.0  # grey levels: an image with less standard deviation is blank
+    max_saturated: float = 0.2  # fraction of pixels at 255 above which an image is overexposed
+    min_sharpness: float = 0.25  # high-frequency share of the pattern's contrast; below it, out of focus
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    intersection: IntersectionConfig = field(default_factory=IntersectionConfig)
+
+
+def sharpness(image: np.ndarray, window: int = 15) -> float:
+    """How much of the local contrast is fine detail: median |Laplacian| over local std where the pattern is.
+
+    A focused projected pattern has sharp cell edges (about 0.5 and more);
+    defocus removes the fine detail first.
+    """
+    img = np.asarray(image, dtype=np.float32)
+    c = local_contrast(img, window)
+    lit = c > max(4.0, float(np.percentile(c, 95)) / 3)
+    if lit.sum() < 100:
+        return 0.0
+    lap = np.abs(cv2.Laplacian(img, cv2.CV_32F, ksize=1))
+    return float(np.median(lap[lit]) / np.median(c[lit]))
+
+
+def image_problem(image: np.ndarray, cfg: ReconstructionConfig) -> str:
+    """Why an image is unusable for matching, or "" when it is usable."""
+    img = np.asarray(image)
+    scale = 255.0 / 65535.0 if img.dtype == np.uint16 else 1.0
+    g = img.astype(np.float32) * scale
+    if g.std() < cfg.min_contrast:
+        return f"blank (grey-value standard deviation {g.std():.1f} < {cfg.min_contrast})"
+    sat = float(np.mean(g >= 254.5))
+    if sat > cfg.max_saturated:
+        return f"overexposed ({sat:.0%} of pixels saturated)"
+    s = sharpness(g)
+    if s < cfg.min_sharpness:
+        return f"out of focus (sharpness {s:.2f} < {cfg.min_sharpness})"
+    return ""
+
+
+def arm_cameras(rig: Rig, arm_id: str) -> list[str]:
+    for arm in rig.arms:
+        if arm.id == arm_id:
+            return list(arm.cameras)
+    raise ValueError(f"rig {rig.serial} has no arm {arm_id!r} (arms: {', '.join(a.id for a in rig.arms)})")
+
+
+def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id: str,
+                    cfg: ReconstructionConfig | None = None, progress=lambda msg: None) -> tuple[PointSurface, dict]:
+    """The point surface of what arm ``arm_id`` sees in a torso ``capture``.
+
+    Points are in the calibration's frame (mm). Unusable or missing images
+    are skipped and named in the report; at least two usable images are needed.
+    Returns ``(surface, report)``.
+    """
+    cfg = cfg or ReconstructionConfig()
+    t0 = time.perf_counter()
+    ids = arm_cameras(rig, arm_id)
+    unusable = {}
+    images, cams, used = [], [], []
+    polygons = (capture.extra or {}).get(ROI_KEY) or {}
+    for cam_id in ids:
+        if cam_id not in calibration.cameras:
+            unusable[cam_id] = "not in the calibration"
+            continue
+        if cam_id not in capture.cameras:
+            unusable[cam_id] = "missing from the capture"
+            continue
+        try:
+            image = load_image(capture, cam_id, rig)
+        except FormatError as exc:
+            unusable[cam_id] = f"unreadable: {exc}"
+            continue
+        if image.ndim == 3:
+            image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        why = image_problem(image, cfg)
+        if why:
+            unusable[cam_id] = why
+            continue
+        if image.dtype == np.uint16:
+            image = (image.astype(np.float32) * (255.0 / 65535.0))
+        images.append(image.astype(np.float32))
+        cams.append(calibration.cameras[cam_id])
+        used.append(cam_id)
+    for cam_id, why in unusable.items():
+        progress(f"arm {arm_id}: image {cam_id} unusable: {why}")
+    if len(used) < 2:
+        raise ValueError(f"arm {arm_id}: fewer than two usable images ("
+                         + "; ".join(f"{c}: {w}" for c, w in unusable.items()) + ")")
+    polys = [polygons.get(c) for c in used] if polygons else None
+    centre = rig_centre(list(calibration.cameras.values()))
+    progress(f"arm {arm_id}: matching and tracking through {', '.join(used)}")
+    t1 = time.perf_counter()
+    tr = track_images(images, cams, lambda p: subject_depth_bounds(p, centre, cfg.subject_radius_mm),
+                      cfg.tracking, polys)
+    t2 = time.perf_counter()
+    progress(f"arm {arm_id}: intersecting {len(tr['tracks'])} tracks")
+    res = intersect(cams, tr["tracks"], cfg.intersection)
+    eig = np.linalg.eigvalsh(res["cov"])
+    sigma = np.sqrt(np.maximum(eig[:, -1], 0))
+    reason = res["reason"].copy()
+    reason[(reason == "") & (sigma > cfg.max_sigma_mm)] = "imprecise"
+    keep = reason == ""
+    t3 = time.perf_counter()
+    surface = make_surface(res["X"][keep], cams, data={"sigma_mm": sigma[keep].astype(np.float32),
+                                                       "rays": res["rays"][keep].astype(np.int32)})
+    t4 = time.perf_counter()
+    dropped = {}
+    for r in reason[~keep]:
+        dropped[str(r)] = dropped.get(str(r), 0) + 1
+    rays = res["rays"][keep]
+    report = {
+        "arm": arm_id, "cameras": used, "unusable_images": unusable,
+        "points": int(keep.sum()), "tracks": int(len(tr["tracks"])), "dropped": dropped,
+        "rays_per_point": {str(k): int((rays == k).sum()) for k in range(2, len(used) + 1)},
+        "removed_rays": int(np.isfinite(tr["tracks"][..., 0]).sum() - res["used"].sum()),
+        "sigma_mm_median": float(np.median(sigma[keep])) if keep.any() else None,
+        "patches": int(len(surface.faces)), "pairs": tr["pairs"],
+        "seconds": {"load": t1 - t0, "match_track": t2 - t1, "intersect": t3 - t2, "surface": t4 - t3,
+                    "total": t4 - t0},
+    }
+    return surface, report

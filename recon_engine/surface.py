@@ -1,0 +1,225 @@
+"""Point surfaces: triangulated irregular networks, normals and PLY files.
+
+An arm's points are triangulated in the arm's viewing direction (a 2.5D
+TIN: Delaunay in the image plane of a camera looking along the arm's mean
+axis); triangles with long edges (across holes) or seen nearly edge-on
+(steep, across depth jumps) are removed. These triangles are the patches of
+point-to-patch registration.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import Delaunay
+
+
+@dataclass
+class PointSurface:
+    """Points (mm, world frame) with normals, triangular patches and per-point data.
+
+    ``faces`` (F, 3) index ``points``; ``normals`` (N, 3) unit, pointing to the
+    viewer; ``data`` holds per-point arrays (``sigma_mm``, ``rays``, …).
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    faces: np.ndarray
+    data: dict = field(default_factory=dict)
+    view_direction: np.ndarray | None = None  # unit, from the cameras towards the subject
+
+    def __len__(self):
+        return len(self.points)
+
+
+def viewing_frame(cameras) -> np.ndarray:
+    """World→view rotation: z the cameras' mean optical axis, x along the arm."""
+    z = np.mean([c.R[2] for c in cameras], axis=0)
+    z /= np.linalg.norm(z)
+    x = cameras[-1].C - cameras[0].C if len(cameras) > 1 else cameras[0].R[0]
+    x = x - z * (x @ z)
+    if np.linalg.norm(x) < 1e-9:
+        x = cameras[0].R[0] - z * (cameras[0].R[0] @ z)
+    x /= np.linalg.norm(x)
+    return np.vstack([x, np.cross(z, x), z])
+
+
+def triangulate(points: np.ndarray, view_R: np.ndarray, eye: np.ndarray, max_edge_mm: float | None = None,
+                max_slope_deg: float = 80.0) -> np.ndarray:
+    """TIN faces (F, 3) of ``points`` seen from ``eye`` along ``view_R[2]``.
+
+    ``max_edge_mm`` default: four times the median edge length.
+    """
+    if len(points) < 3:
+        return np.zeros((0, 3), dtype=np.int64)
+    v = (points - eye) @ view_R.T
+    uv = v[:, :2] / v[:, 2:3]
+    tri = Delaunay(uv).simplices
+    a, b, c = points[tri[:, 0]], points[tri[:, 1]], points[tri[:, 2]]
+    edges = np.stack([np.linalg.norm(a - b, axis=1), np.linalg.norm(b - c, axis=1), np.linalg.norm(c - a, axis=1)], 1)
+    if max_edge_mm is None:
+        max_edge_mm = 4.0 * float(np.median(edges))
+    n = np.cross(b - a, c - a)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    sight = (a + b + c) / 3 - eye
+    sight /= np.linalg.norm(sight, axis=1, keepdims=True)
+    cos = np.abs(np.sum(n * sight, axis=1))
+    keep = (edges.max(axis=1) <= max_edge_mm) & (cos >= np.cos(np.radians(max_slope_deg)))
+    return tri[keep].astype(np.int64)
+
+
+def vertex_normals(points: np.ndarray, faces: np.ndarray, towards: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals, each turned to face the point ``towards`` (mm)."""
+    n = np.zeros_like(points, dtype=float)
+    if len(faces):
+        a, b, c = points[faces[:, 0]], points[faces[:, 1]], points[faces[:, 2]]
+        fn = np.cross(b - a, c - a)
+        for k in range(3):
+            np.add.at(n, faces[:, k], fn)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    n = np.where(length > 0, n / np.maximum(length, 1e-12), 0.0)
+    lonely = length[:, 0] == 0
+    if lonely.any() and len(points) >= 3:
+        # points in no patch: the normal of the plane through their nearest neighbours
+        from scipy.spatial import cKDTree
+
+        k = min(8, len(points))
+        _, nb = cKDTree(points).query(points[lonely], k=k)
+        q = points[nb] - points[nb].mean(axis=1, keepdims=True)
+        _, _, vt = np.linalg.svd(q, full_matrices=False)
+        n[lonely] = vt[:, -1]
+    flip = np.sum(n * (np.asarray(towards) - points), axis=1) < 0
+    n[flip] *= -1
+    return n
+
+
+def make_surface(points, cameras, data=None, max_edge_mm=None, max_slope_deg=80.0) -> PointSurface:
+    """The TIN surface of an arm's points seen by ``cameras``."""
+    points = np.asarray(points, dtype=float)
+    R = viewing_frame(cameras)
+    eye = np.mean([c.C for c in cameras], axis=0)
+    faces = triangulate(points, R, eye, max_edge_mm, max_slope_deg)
+    normals = vertex_normals(points, faces, eye)
+    return PointSurface(points, normals, faces, dict(data or {}), R[2])
+
+
+_PLY_TYPES = {np.dtype("float32"): "float", np.dtype("float64"): "double", np.dtype("int32"): "int",
+              np.dtype("uint8"): "uchar", np.dtype("int64"): "int", np.dtype("uint32"): "uint",
+              np.dtype("uint16"): "ushort", np.dtype("int16"): "short"}
+
+
+def write_ply(path, points, normals=None, faces=None, data: dict | None = None, comments=()) -> None:
+    """Binary little-endian PLY: x y z [nx ny nz] [per-point scalars] [faces]; written atomically."""
+    path = Path(path)
+    points = np.asarray(points, dtype=np.float64)
+    cols = [("x", points[:, 0]), ("y", points[:, 1]), ("z", points[:, 2])]
+    if normals is not None:
+        normals = np.asarray(normals, dtype=np.float32)
+        cols += [("nx", normals[:, 0]), ("ny", normals[:, 1]), ("nz", normals[:, 2])]
+    for name, values in (data or {}).items():
+        values = np.asarray(values)
+        if values.shape != (len(points),):
+            raise ValueError(f"PLY property {name!r} has shape {values.shape}, expected ({len(points)},)")
+        if values.dtype == np.int64:
+            values = values.astype(np.int32)
+        cols.append((name, values))
+    dtype = np.dtype([(n, v.dtype if v.dtype in _PLY_TYPES else np.float64) for n, v in cols]).newbyteorder("<")
+    rec = np.empty(len(points), dtype=dtype)
+    for n, v in cols:
+        rec[n] = v
+    header = ["ply", "format binary_little_endian 1.0", *[f"comment {c}" for c in comments],
+              f"element vertex {len(points)}"]
+    header += [f"property {_PLY_TYPES[dtype[n].newbyteorder('=')]} {n}" for n in dtype.names]
+    f = np.zeros((0, 3), np.int32) if faces is None else np.asarray(faces, dtype=np.int32)
+    if faces is not None:
+        header += [f"element face {len(f)}", "property list uchar int vertex_indices"]
+    header.append("end_header")
+    tmp = path.with_name(path.name + ".partial")
+    with open(tmp, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(rec.tobytes())
+        if faces is not None:
+            frec = np.empty(len(f), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+            frec["n"] = 3
+            frec["i"] = f
+            fh.write(frec.tobytes())
+    tmp.replace(path)
+
+
+def read_ply(path) -> dict:
+    """Vertices (``points``, ``normals`` when present, other scalars) and faces of a PLY file.
+
+    Binary little-endian and ASCII files with triangle faces.
+    """
+    path = Path(path)
+    raw = path.read_bytes()
+    end = raw.find(b"end_header")
+    if not raw.startswith(b"ply") or end < 0:
+        raise ValueError(f"{path}: not a PLY file")
+    body_start = raw.index(b"\n", end) + 1
+    lines = raw[:end].decode("ascii", "replace").splitlines()
+    fmt, elements, current = None, [], None
+    for line in lines:
+        parts = line.split()
+        if not parts:
+            continue
+        if parts[0] == "format":
+            fmt = parts[1]
+        elif parts[0] == "element":
+            current = {"name": parts[1], "count": int(parts[2]), "props": []}
+            elements.append(current)
+        elif parts[0] == "property" and current is not None:
+            current["props"].append(parts[1:])
+    types = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "int": "<i4", "int32": "<i4",
+             "uint": "<u4", "uint32": "<u4", "uchar": "u1", "uint8": "u1", "char": "i1", "int8": "i1",
+             "short": "<i2", "int16": "<i2", "ushort": "<u2", "uint16": "<u2"}
+    out = {}
+    if fmt == "ascii":
+        tokens = raw[body_start:].split()
+        pos = 0
+        for el in elements:
+            if el["name"] == "vertex":
+                n = len(el["props"])
+                vals = np.array(tokens[pos:pos + n * el["count"]], dtype=float).reshape(el["count"], n)
+                pos += n * el["count"]
+                out["vertex"] = {p[-1]: vals[:, i] for i, p in enumerate(el["props"])}
+            elif el["name"] == "face":
+                faces = []
+                for _ in range(el["count"]):
+                    k = int(tokens[pos])
+                    faces.append([int(t) for t in tokens[pos + 1:pos + 1 + k]])
+                    pos += 1 + k
+                out["faces"] = np.array([f[:3] for f in faces], dtype=np.int64).reshape(-1, 3)
+    elif fmt == "binary_little_endian":
+        pos = body_start
+        for el in elements:
+            if el["name"] == "vertex":
+                dt = np.dtype([(p[-1], types[p[0]]) for p in el["props"]])
+                rec = np.frombuffer(raw, dtype=dt, count=el["count"], offset=pos)
+                pos += dt.itemsize * el["count"]
+                out["vertex"] = {n: rec[n].astype(float) for n in dt.names}
+            elif el["name"] == "face":
+                p = el["props"][0]
+                if p[0] != "list":
+                    raise ValueError(f"{path}: face element without a vertex list")
+                ct, it = types[p[1]], types[p[2]]
+                dt = np.dtype([("n", ct), ("i", it, (3,))])
+                rec = np.frombuffer(raw, dtype=dt, count=el["count"], offset=pos)
+                if el["count"] and np.any(rec["n"] != 3):
+                    raise ValueError(f"{path}: only triangle faces are supported")
+                pos += dt.itemsize * el["count"]
+                out["faces"] = rec["i"].astype(np.int64)
+            else:
+                raise ValueError(f"{path}: unsupported element {el['name']!r} before the data end")
+    else:
+        raise ValueError(f"{path}: unsupported PLY format {fmt!r}")
+    v = out.get("vertex")
+    if v is None or not {"x", "y", "z"} <= set(v):
+        raise ValueError(f"{path}: no vertex positions")
+    res = {"points": np.column_stack([v["x"], v["y"], v["z"]]), "faces": out.get("faces", np.zeros((0, 3), np.int64))}
+    if {"nx", "ny", "nz"} <= set(v):
+        res["normals"] = np.column_stack([v["nx"], v["ny"], v["nz"]])
+    res["data"] = {k: a for k, a in v.items() if k not in ("x", "y", "z", "nx", "ny", "nz")}
+    return res

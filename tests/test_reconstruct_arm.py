@@ -1,0 +1,95 @@
+"""One arm's point surface from its images (tiny preset)."""
+
+import json
+
+import cv2
+import numpy as np
+import open3d as o3d
+import pytest
+
+from .truth import truth_scene
+from recon_engine.cli import main
+from recon_engine.formats import load_images, read_calibration, read_capture, read_rig, write_capture
+from recon_engine.reconstruction import reconstruct_arm
+from recon_engine.surface import read_ply
+
+
+@pytest.fixture(scope="module")
+def arm_a(torso_scenario):
+    rig = read_rig(torso_scenario / "rig.json")
+    cal = read_calibration(torso_scenario / "truth" / "visit0-a" / "calibration.json")
+    cap = read_capture(torso_scenario / "captures" / "visit0-a", rig)
+    return rig, cal, cap, reconstruct_arm(cap, rig, cal, "A")
+
+
+def _distances(scenario, points):
+    return truth_scene(scenario).compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy()
+
+
+def test_the_arm_surface_lies_on_the_true_body(torso_scenario, arm_a):
+    surface, report = arm_a[3]
+    d = _distances(torso_scenario, surface.points)
+    # tiny images: 2.1 mm pixels; the paper-scale figures are in docs/benchmarks.md
+    assert len(surface) > 500
+    assert np.sqrt(np.mean(d ** 2)) < 0.7 and d.max() < 3.0
+
+
+def test_the_report_counts_rays_and_precision(arm_a):
+    surface, report = arm_a[3]
+    assert sum(report["rays_per_point"].values()) == report["points"] == len(surface)
+    assert report["rays_per_point"]["5"] > 0  # tracked through the whole arm
+    assert 0 < report["sigma_mm_median"] < 1.0
+    assert surface.data["sigma_mm"].shape == (len(surface),)
+    assert len(surface.faces) > len(surface) and np.allclose(np.linalg.norm(surface.normals, axis=1), 1)
+
+
+def test_normals_face_the_arm(arm_a):
+    rig, cal, cap, (surface, _) = arm_a
+    eye = np.mean([cal.cameras[c].C for c in ("A1", "A2", "A3", "A4", "A5")], axis=0)
+    assert np.all(np.sum(surface.normals * (eye - surface.points), axis=1) > 0)
+
+
+def test_unusable_and_missing_images_are_named_and_the_arm_still_reconstructed(torso_scenario, arm_a, tmp_path):
+    rig, cal, cap, _ = arm_a
+    imgs = {c: im for c, im in load_images(cap, rig).items() if c != "A5"}  # A5 failed
+    imgs["A1"] = np.full_like(imgs["A1"], 7)  # blank
+    imgs["A4"] = cv2.GaussianBlur(imgs["A4"], (0, 0), 3)  # out of focus
+    bad = write_capture(tmp_path / "bad", kind="torso", rig=rig.serial, captured_at=cap.captured_at, images=imgs)
+    surface, report = reconstruct_arm(read_capture(tmp_path / "bad", rig), rig, cal, "A")
+    u = report["unusable_images"]
+    assert u["A5"] == "missing from the capture"
+    assert u["A1"].startswith("blank") and u["A4"].startswith("out of focus")
+    assert report["cameras"] == ["A2", "A3"] and len(surface) > 100
+
+
+def test_an_overexposed_image_is_named(torso_scenario, arm_a, tmp_path):
+    rig, cal, cap, _ = arm_a
+    imgs = load_images(cap, rig)
+    imgs["A2"] = np.clip(imgs["A2"].astype(np.int32) * 6, 0, 255).astype(np.uint8)
+    write_capture(tmp_path / "over", kind="torso", rig=rig.serial, captured_at=cap.captured_at, images=imgs)
+    _, report = reconstruct_arm(read_capture(tmp_path / "over", rig), rig, cal, "A")
+    assert report["unusable_images"]["A2"].startswith("overexposed")
+
+
+def test_it_refuses_an_unknown_arm(arm_a):
+    rig, cal, cap, _ = arm_a
+    with pytest.raises(ValueError, match="no arm 'Z'"):
+        reconstruct_arm(cap, rig, cal, "Z")
+
+
+def test_the_command_writes_a_ply_with_precision(torso_scenario, tmp_path, capsys):
+    out = tmp_path / "arm-B.ply"
+    rc = main(["reconstruct-arm", "--rig", str(torso_scenario / "rig.json"),
+               "--calibration", str(torso_scenario / "truth" / "calibration.json"), "--arm", "B",
+               "--out", str(out), str(torso_scenario / "captures" / "visit0-a")])
+    assert rc == 0
+    ply = read_ply(out)
+    assert len(ply["points"]) > 300 and {"sigma_mm", "rays"} <= set(ply["data"]) and len(ply["faces"])
+    assert json.loads(out.with_suffix(".json").read_text())["arm"] == "B"
+
+
+def test_the_command_refuses_a_test_field_capture(torso_scenario, capsys):
+    rc = main(["reconstruct-arm", "--rig", str(torso_scenario / "rig.json"),
+               "--calibration", str(torso_scenario / "truth" / "calibration.json"), "--arm", "A",
+               "--out", "/tmp/never.ply", str(torso_scenario / "captures" / "testfield-pose0")])
+    assert rc == 2 and "kind is 'testfield'" in capsys.readouterr().err
