@@ -27,6 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .imaging import sample_bilinear
+
 
 @dataclass(frozen=True)
 class MatchingConfig:
@@ -34,8 +36,8 @@ class MatchingConfig:
     # different foreshortening of the skin in converging views
     window: int = 7  # px, side of the correlation window (about 2.5 projector pixels)
     sparse_window: int = 13  # px, window of the full-range search of stage 1
-    sparse_step: int = 4  # every n-th point searches the full range
-    band: int = 2  # rows searched either side of the epipolar row
+    anchor_spacing: int = 24  # px, one stage-1 point per square of this side
+    band: int = 2  # rows searched either side of the epipolar row (stage 2; stage 1 stays on the row)
     min_ncc: float = 0.6  # weaker peaks are not matches (least-squares matching checks again)
     sparse_min_ncc: float = 0.7
     uniqueness: float = 0.9  # the second peak must stay below this fraction of the first
@@ -68,7 +70,7 @@ def sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 def _box(a: np.ndarray, win: int) -> np.ndarray:
     """Sums over ``win``×``win`` windows of the last two axes (valid part)."""
-    c = np.cumsum(np.cumsum(a, axis=-2, dtype=np.float64), axis=-1)
+    c = np.cumsum(np.cumsum(a, axis=-2, dtype=np.float32), axis=-1)
     c = np.pad(c, [(0, 0)] * (a.ndim - 2) + [(1, 0), (1, 0)])
     return c[..., win:, win:] - c[..., :-win, win:] - c[..., win:, :-win] + c[..., :-win, :-win]
 
@@ -109,7 +111,9 @@ def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.n
     off = np.arange(-h, h + 1, dtype=float)
     lx = xy[:, 0, None, None] + off[None, None, :]
     ly = xy[:, 1, None, None] + off[None, :, None]
-    L = sample(left, np.broadcast_to(lx, (n, window, window)), np.broadcast_to(ly, (n, window, window)))
+    # OpenCV's remap (1/32-px interpolation steps) is precise enough for a
+    # correlation peak that least-squares matching refines afterwards
+    L = sample_bilinear(left, np.broadcast_to(lx, (n, window, window)), np.broadcast_to(ly, (n, window, window)))
     L = L - L.mean(axis=(1, 2), keepdims=True)
     Lnorm = np.sqrt(np.sum(L * L, axis=(1, 2)))
     x0 = np.round(x_pred)
@@ -117,7 +121,9 @@ def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.n
     rows = np.arange(-band - h, band + h + 1, dtype=float)
     sx = x0[:, None, None] + cols[None, None, :]
     sy = xy[:, 1, None, None] + rows[None, :, None]
-    S = sample(right, np.broadcast_to(sx, (n, len(rows), len(cols))), np.broadcast_to(sy, (n, len(rows), len(cols))))
+    S = sample_bilinear(right, np.broadcast_to(sx, (n, len(rows), len(cols))),
+                        np.broadcast_to(sy, (n, len(rows), len(cols))))
+    S = S - S.mean(axis=(1, 2), keepdims=True)  # small magnitudes keep the float32 window sums exact
     B, D = 2 * band + 1, 2 * radius + 1
     num = np.zeros((n, B, D), np.float32)
     # loop over the window's offsets (not the points): each step is one array operation
@@ -186,10 +192,12 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
     if n == 0:
         return {"xy": out_xy, "ncc": out_ncc, "valid": np.zeros(0, bool), "reason": reason}
     dmin, dmax = sorted(disparity_range)
-    # stage 1: a sparse subset over the whole range, big window
-    sparse = np.arange(0, n, max(1, cfg.sparse_step))
+    # stage 1: one point per anchor square over the whole range, big window, on its row
+    cell = np.floor(xy / cfg.anchor_spacing).astype(np.int64)
+    key = cell[:, 1] * (int(cell[:, 0].max()) + 2) + cell[:, 0]
+    _, sparse = np.unique(key, return_index=True)
     radius = int(np.ceil((dmax - dmin) / 2)) + 1
-    r1 = _search(left, right, xy[sparse], xy[sparse, 0] - 0.5 * (dmin + dmax), radius, cfg.band,
+    r1 = _search(left, right, xy[sparse], xy[sparse, 0] - 0.5 * (dmin + dmax), radius, 0,
                  cfg.sparse_window, cfg)
     ok1 = (r1["ncc"] >= cfg.sparse_min_ncc) & (r1["second"] < cfg.uniqueness * r1["ncc"]) & ~r1["at_edge"]
     d1 = xy[sparse, 0] - r1["xy"][:, 0]
@@ -220,7 +228,7 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
         (r2["ncc"] < cfg.min_ncc, "correlation below the minimum"),
         (r2["second"] >= cfg.uniqueness * r2["ncc"], "not unique (second peak too close)"),
         (lr > cfg.lr_tolerance_px, "left-right check failed"),
-        (far > 8 * cfg.sparse_window * max(1, cfg.sparse_step) ** 0.5, "no reliable disparity in the neighbourhood"),
+        (far > 6 * cfg.anchor_spacing, "no reliable disparity in the neighbourhood"),
     ]
     for bad, why in checks:
         reason[(reason == "") & bad] = why

@@ -104,7 +104,10 @@ def intersect(cameras: list[Camera], observations: np.ndarray, cfg: Intersection
     dof = 2 * n_rays - 3
     s0 = np.sqrt(np.sum(np.where(used[..., None], res, 0) ** 2, axis=(1, 2)) / np.maximum(dof, 1)) / cfg.sigma_px
     # covariance with the a-priori precision, scaled up where the point fits worse than expected
-    Ninv = np.linalg.inv(N + np.eye(3)[None] * 1e-15)
+    Ninv = np.full((T, 3, 3), np.inf)
+    solvable = (n_rays >= 2) & (np.abs(np.linalg.det(N)) > 1e-18)
+    Ninv[solvable] = np.linalg.inv(N[solvable])
+    reason[(reason == "") & ~solvable] = "fewer than two rays"
     scale = np.where(dof > 0, np.maximum(s0, 1.0), 1.0) ** 2 * cfg.sigma_px ** 2
     cov = Ninv * scale[:, None, None]
     # intersection angle: the widest pair of rays

@@ -19,7 +19,7 @@ from .epipolar import rig_centre, subject_depth_bounds
 from .features import local_contrast
 from .formats import Calibration, Capture, FormatError, Rig, load_image
 from .multiview import IntersectionConfig, intersect
-from .surface import PointSurface, make_surface
+from .surface import PointSurface, make_surface, off_surface
 from .tracking import TrackingConfig, track_images
 
 ROI_KEY = "roi_polygons"  # capture.json: {"A1": [[x, y], ...]} user-drawn regions (px)
@@ -125,10 +125,15 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     t2 = time.perf_counter()
     progress(f"arm {arm_id}: intersecting {len(tr['tracks'])} tracks")
     res = intersect(cams, tr["tracks"], cfg.intersection)
-    eig = np.linalg.eigvalsh(res["cov"])
-    sigma = np.sqrt(np.maximum(eig[:, -1], 0))
     reason = res["reason"].copy()
+    sigma = np.full(len(reason), np.inf)
+    ok = reason == ""
+    sigma[ok] = np.sqrt(np.maximum(np.linalg.eigvalsh(res["cov"][ok])[:, -1], 0))
     reason[(reason == "") & (sigma > cfg.max_sigma_mm)] = "imprecise"
+    keep = reason == ""
+    # wrong matches of two-ray points show only against their neighbours
+    stray = off_surface(res["X"][keep])
+    reason[np.nonzero(keep)[0][stray]] = "off the local surface"
     keep = reason == ""
     t3 = time.perf_counter()
     surface = make_surface(res["X"][keep], cams, data={"sigma_mm": sigma[keep].astype(np.float32),
