@@ -46,14 +46,23 @@ def main() -> int:
     ap.add_argument("--out", default=None)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--reuse", action="store_true",
+                    help="keep an existing scenario in OUT and only re-run the checks (timings from the last run)")
     args = ap.parse_args()
     out = Path(args.out or f"bench-out/{args.preset}")
     cfg = preset(args.preset, seed=args.seed)
-    t0 = time.perf_counter()
-    summary = simulate(out, cfg, force=True, workers=args.workers)
-    wall = time.perf_counter() - t0
-    peak_self = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    peak_children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    previous = out.parent / f"bench_simulate_{args.preset}.json"
+    if args.reuse and (out / "truth" / "scenario.json").exists() and previous.exists():
+        summary = json.loads((out / "truth" / "scenario.json").read_text())["summary"]
+        last = json.loads(previous.read_text())
+        wall = last["wall_s"]
+        peak_self, peak_children = last["peak_rss_mib"]["main"], last["peak_rss_mib"]["largest_worker"]
+    else:
+        t0 = time.perf_counter()
+        summary = simulate(out, cfg, force=True, workers=args.workers)
+        wall = time.perf_counter() - t0
+        peak_self = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        peak_children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
     n_images = len(summary["captures"]) * 20
 
     t1 = time.perf_counter()

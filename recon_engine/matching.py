@@ -42,6 +42,7 @@ class MatchingConfig:
     sparse_min_ncc: float = 0.7
     uniqueness: float = 0.9  # the second peak must stay below this fraction of the first
     dense_radius: int = 6  # px, stage-2 search either side of the predicted disparity
+    scales: tuple = (1.0, 0.8, 1.25)  # stretches of the right window along the row tried in stage 2
     neighbours: int = 8  # stage-1 matches that predict a point's disparity
     neighbour_tolerance_px: float = 3.0  # stage-1 match dropped when further from its neighbours' median
     lr_tolerance_px: float = 0.5  # left-right check
@@ -82,7 +83,7 @@ def _parabola(m, l, r):
 
 
 def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.ndarray, radius: int,
-               band: int, window: int, exclude: int = 2) -> dict:
+               band: int, window: int, exclude: int = 2, scale=1.0) -> dict:
     """Best NCC match of each left point in the right image around ``x_pred``.
 
     Parameters
@@ -101,6 +102,10 @@ def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.n
         Side of the correlation window (odd, px).
     exclude : int
         Columns either side of the peak left out of the second peak.
+    scale : float or (N,) array
+        Column spacing of the right window (px per left px): a surface patch
+        foreshortened differently in the two views appears stretched along
+        the row by this factor; the search steps scale with it.
 
     Returns ``{"xy": (N, 2) right points, "ncc": (N,), "second": (N,),
     "at_edge": (N,) bool}``; ``at_edge`` means the peak lies on the border of
@@ -117,9 +122,10 @@ def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.n
     L = L - L.mean(axis=(1, 2), keepdims=True)
     Lnorm = np.sqrt(np.sum(L * L, axis=(1, 2)))
     x0 = np.round(x_pred)
+    sc = np.broadcast_to(np.asarray(scale, dtype=float), (n,))
     cols = np.arange(-radius - h, radius + h + 1, dtype=float)
     rows = np.arange(-band - h, band + h + 1, dtype=float)
-    sx = x0[:, None, None] + cols[None, None, :]
+    sx = x0[:, None, None] + sc[:, None, None] * cols[None, None, :]
     sy = xy[:, 1, None, None] + rows[None, :, None]
     S = sample_bilinear(right, np.broadcast_to(sx, (n, len(rows), len(cols))),
                         np.broadcast_to(sy, (n, len(rows), len(cols))))
@@ -154,7 +160,7 @@ def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.n
         dy = np.where((kb == 0) | (kb == B - 1), 0.0, dy)
     else:
         dy = np.zeros(n)
-    out = np.column_stack([x0 - radius + kd + dx, xy[:, 1] - band + kb + dy])
+    out = np.column_stack([x0 + sc * (kd + dx - radius), xy[:, 1] - band + kb + dy])
     return {"xy": out, "ncc": best.astype(float), "second": second.astype(float), "at_edge": at_edge}
 
 
@@ -166,10 +172,27 @@ def _chunked(fn, n, chunk, **arrays):
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
-def _search(left, right, xy, x_pred, radius, band, window, cfg):
+def _search(left, right, xy, x_pred, radius, band, window, cfg, scale=1.0):
     n = len(xy)
-    return _chunked(lambda **a: ncc_search(left, right, a["xy"], a["x_pred"], radius, band, window),
-                    n, max(1, cfg.chunk * 121 // (window * window * max(1, radius // 8 + 1))), xy=xy, x_pred=x_pred)
+    scale = np.broadcast_to(np.asarray(scale, dtype=float), (n,)).copy()
+    return _chunked(lambda **a: ncc_search(left, right, a["xy"], a["x_pred"], radius, band, window, scale=a["scale"]),
+                    n, max(1, cfg.chunk * 121 // (window * window * max(1, radius // 8 + 1))), xy=xy, x_pred=x_pred,
+                    scale=scale)
+
+
+def _plane_prediction(anchors, d_anchor, nb, xy):
+    """Disparity at ``xy`` from a plane through each point's neighbouring anchors (median where degenerate)."""
+    A = np.concatenate([np.ones(nb.shape + (1,)), anchors[nb] - xy[:, None, :]], axis=2)  # (n, k, 3)
+    N = np.einsum("nki,nkj->nij", A, A)
+    b = np.einsum("nki,nk->ni", A, d_anchor[nb])
+    med = np.median(d_anchor[nb], axis=1)
+    ok = np.linalg.cond(N) < 1e8
+    pred = med.copy()
+    if ok.any():
+        pred[ok] = np.linalg.solve(N[ok], b[ok][..., None])[:, 0, 0]
+    # a plane that strays far from its anchors (a wrong anchor) falls back to the median
+    spread = np.ptp(d_anchor[nb], axis=1)
+    return np.where(np.abs(pred - med) <= spread + 1.0, pred, med)
 
 
 def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_range: tuple[float, float],
@@ -213,14 +236,25 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
     if len(anchors) < 3:
         reason[:] = "no reliable disparity in the neighbourhood"
         return {"xy": out_xy, "ncc": out_ncc, "valid": np.zeros(n, bool), "reason": reason}
-    # stage 2: every point, short range around the disparity its anchors predict
+    # stage 2: every point, short range around the disparity its anchors'
+    # local plane predicts (the disparity changes fast where the skin turns away)
     k = min(cfg.neighbours, len(anchors))
     dist, nb = cKDTree(anchors).query(xy, k=k)
     nb = nb.reshape(n, -1)
-    d_pred = np.median(d_anchor[nb], axis=1)
-    r2 = _search(left, right, xy, xy[:, 0] - d_pred, cfg.dense_radius, cfg.band, cfg.window, cfg)
-    # left-right check: the right point matched back into the left image
-    back = _search(right, left, r2["xy"], xy[:, 0], 2, 1, cfg.window, cfg)
+    d_pred = _plane_prediction(anchors, d_anchor, nb, xy)
+    best = None
+    for sc in cfg.scales:
+        r = _search(left, right, xy, xy[:, 0] - d_pred, cfg.dense_radius, cfg.band, cfg.window, cfg, scale=sc)
+        r["scale"] = np.full(n, sc)
+        if best is None:
+            best = r
+        else:
+            better = r["ncc"] > best["ncc"]
+            for key in best:
+                best[key] = np.where(better[:, None] if best[key].ndim == 2 else better, r[key], best[key])
+    r2 = best
+    # left-right check: the right point matched back into the left image (inverse stretch)
+    back = _search(right, left, r2["xy"], xy[:, 0], 2, 1, cfg.window, cfg, scale=1.0 / r2["scale"])
     lr = np.hypot(back["xy"][:, 0] - xy[:, 0], back["xy"][:, 1] - xy[:, 1])
     far = np.asarray(dist).reshape(n, -1)[:, -1]
     checks = [
@@ -237,7 +271,8 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
     out_ncc[:] = r2["ncc"]
     if cfg.refine and valid.any():
         idx = np.nonzero(valid)[0]
-        lsm = least_squares_refine(left, right, xy[idx], r2["xy"][idx], window=cfg.window)
+        lsm = least_squares_refine(left, right, xy[idx], r2["xy"][idx], window=cfg.window,
+                                   initial_scale=r2["scale"][idx])
         good = lsm["converged"] & (lsm["rho"] >= cfg.min_lsm_rho) & (lsm["sigma"] <= cfg.max_lsm_sigma_px)
         reason[idx[~good]] = "least-squares matching failed"
         out_xy[idx[good]] = lsm["xy"][good]
@@ -248,7 +283,7 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
 
 
 def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, xy_right: np.ndarray,
-                         window: int = 11, iterations: int = 8, shift_y: bool = True) -> dict:
+                         window: int = 11, iterations: int = 8, shift_y: bool = True, initial_scale=1.0) -> dict:
     """Adaptive least-squares matching (Gruen 1985) of windows already matched to about a pixel.
 
     The right window is an affine image of the left one along the row
@@ -271,6 +306,7 @@ def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarra
     gy_img = np.gradient(right.astype(np.float32), axis=0)
     # parameters: a0 a1 a2 b0 b1 b2 gain offset
     p = np.zeros((n, 8))
+    p[:, 1] = np.asarray(initial_scale, dtype=float) - 1.0
     p[:, 6] = 1.0
     base = np.asarray(xy_right, dtype=float).copy()
     ddx, ddy = dx.reshape(n, -1), dy.reshape(n, -1)
@@ -306,6 +342,6 @@ def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarra
     Lc = L - L.mean(axis=1, keepdims=True)
     rho = np.sum(Rc * Lc, axis=1) / np.maximum(np.sqrt(np.sum(Rc ** 2, axis=1) * np.sum(Lc ** 2, axis=1)), 1e-12)
     moved = np.hypot(p[:, 0], p[:, 3])
-    converged = active & (moved < 1.5) & (np.abs(p[:, 1]) < 0.5) & (np.abs(p[:, 2]) < 0.5) & (p[:, 6] > 0.2)
+    converged = active & (moved < 1.5) & (np.abs(p[:, 1]) < 0.6) & (np.abs(p[:, 2]) < 0.5) & (p[:, 6] > 0.2)
     out = base + p[:, [0, 3]]
     return {"xy": out, "sigma": sigma, "rho": rho, "converged": converged}

@@ -17,7 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..camera import project
+from ..camera import pixel_to_ray, project
 from ..formats import load_images, read_calibration, read_capture, read_rig, read_testfield
 from ..imaging import sample_bilinear
 from ..targets import detect_markers, measure_markers
@@ -68,9 +68,11 @@ def neighbour_ncc(scenario: str | Path, capture: str, half: int | None = None,
 
     Points are the centroids of the true torso mesh's triangles that both
     cameras see unoccluded and at most ``acos(min_cosine)`` off the surface
-    normal. Patches are ``(2 * half + 1)²`` pixels (default: 4 px at 480 px
-    wide, scaled with the image width), sampled bilinearly at the exact
-    projections. Returns ``{"A1-A2": median, ...}``.
+    normal. Patches are ``(2 * half + 1)²`` pixels of the first camera
+    (default: 4 px at 480 px wide, scaled with the image width), sampled
+    bilinearly; the second camera's patch samples the same piece of skin
+    (the first patch's pixels carried through the surface's tangent plane).
+    Returns ``{"A1-A2": median, ...}``.
     """
     import open3d as o3d
 
@@ -111,7 +113,15 @@ def neighbour_ncc(scenario: str | Path, capture: str, half: int | None = None,
             g = np.arange(-h, h + 1)
             gx, gy = np.meshgrid(g, g)
             pa = sample_bilinear(images[a], ua[:, :1] + gx.ravel(), ua[:, 1:] + gy.ravel()).astype(float)
-            pb = sample_bilinear(images[b], ub[:, :1] + gx.ravel(), ub[:, 1:] + gy.ravel()).astype(float)
+            # the same piece of skin in b: a's patch pixels through the tangent plane into b
+            # (a square in b would compare different skin wherever the views foreshorten differently)
+            Pk, Nk = P[idx][inside], N[idx][inside]
+            grid_a = np.stack([ua[:, :1] + gx.ravel(), ua[:, 1:] + gy.ravel()], axis=2).reshape(-1, 2)
+            rays = pixel_to_ray(ca, grid_a).reshape(len(ua), -1, 3)
+            t = np.einsum("ij,ij->i", Pk - ca.C, Nk)[:, None] / np.einsum("ikj,ij->ik", rays, Nk)
+            Xg = ca.C + rays * t[..., None]
+            uvb = project(cb, Xg.reshape(-1, 3)).reshape(len(ua), -1, 2)
+            pb = sample_bilinear(images[b], uvb[..., 0], uvb[..., 1]).astype(float)
             pa -= pa.mean(axis=1, keepdims=True)
             pb -= pb.mean(axis=1, keepdims=True)
             ncc = (pa * pb).sum(1) / np.sqrt((pa * pa).sum(1) * (pb * pb).sum(1) + 1e-9)

@@ -1,0 +1,187 @@
+"""Benchmark: one arm's reconstruction at paper scale, against the truth and two peers.
+
+    .venv/bin/python benchmarks/bench_reconstruct_arm.py --scenario bench-out/paper --capture visit0-a
+
+For every arm of the capture, with the true calibration at capture time
+(``truth/<capture>/calibration.json``) and, for arm A, once more with our own
+calibration (``--calibration``, default ``bench-out/paper-calibration.json``
+when present):
+
+- ours: ``reconstruction.reconstruct_arm``;
+- OpenCV's StereoSGBM on the same rectified neighbouring pairs (tuned: 3-way
+  mode, block 5, P1/P2 = 8/32·block², left-right check ``disp12MaxDiff=1``,
+  uniqueness 10, speckle filter), every second pixel of our region of
+  interest triangulated from its two rays;
+- pycolmap (``peer_pycolmap.py``): SIFT features, matching of the same
+  neighbouring pairs, ``triangulate_points`` with the known poses.
+
+Figures: distance of the points to the true body surface (RMS, 95th
+percentile, max), coverage (share of the torso area that two or more of the
+arm's cameras see with a point within 2 mm), density (points per cm² of that
+area) and wall time. Writes ``bench-out/bench_reconstruct_arm.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from recon_engine.epipolar import rectify_pair, rig_centre, subject_depth_bounds  # noqa: E402
+from recon_engine.features import region_of_interest  # noqa: E402
+from recon_engine.formats import load_image, read_calibration, read_capture, read_rig  # noqa: E402
+from recon_engine.multiview import IntersectionConfig, intersect  # noqa: E402
+from recon_engine.reconstruction import arm_cameras, reconstruct_arm  # noqa: E402
+
+from bench_simulate import machine  # noqa: E402
+
+
+class Truth:
+    """The posed body (distances) and the torso's triangles with what each arm's cameras see."""
+
+    def __init__(self, scenario: Path, capture: str):
+        body = o3d.io.read_triangle_mesh(str(scenario / "truth" / capture / "body.ply"))
+        torso = o3d.io.read_triangle_mesh(str(scenario / "truth" / capture / "torso.ply"))
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(body))
+        V, F = np.asarray(torso.vertices), np.asarray(torso.triangles)
+        a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+        n = np.cross(b - a, c - a)
+        self.area = 0.5 * np.linalg.norm(n, axis=1)
+        self.normal = n / np.maximum(2 * self.area[:, None], 1e-12)
+        self.centroid = (a + b + c) / 3
+
+    def distance(self, points):
+        return self.scene.compute_distance(o3d.core.Tensor(np.asarray(points, np.float32))).numpy()
+
+    def seen(self, cam) -> np.ndarray:
+        P, N = self.centroid, self.normal
+        to = cam.C - P
+        dist = np.linalg.norm(to, axis=1)
+        facing = np.abs(np.sum(to / dist[:, None] * N, axis=1)) > 0.1
+        uv = cam.project(P)
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        # unoccluded: the ray from the camera reaches the point (lifted clear of its own triangle)
+        lifted = P + 0.5 * N * np.sign(np.sum(to * N, axis=1))[:, None]
+        d = lifted - cam.C
+        L = np.linalg.norm(d, axis=1)
+        rays = np.column_stack([np.repeat(cam.C[None], len(P), 0), d / L[:, None]]).astype(np.float32)
+        hit = self.scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        return facing & inside & (hit >= L - 1.0)
+
+    def figures(self, points, cams) -> dict:
+        points = np.asarray(points, float).reshape(-1, 3)
+        if len(points) == 0:
+            return {"points": 0}
+        d = self.distance(points)
+        seen2 = np.sum([self.seen(c) for c in cams], axis=0) >= 2
+        area_cm2 = self.area[seen2].sum() / 100.0
+        near, _ = cKDTree(points).query(self.centroid[seen2], k=1, distance_upper_bound=2.0)
+        covered = np.isfinite(near)
+        # density over the seen torso: points that lie on it (within 2 mm of a seen triangle's centroid region)
+        on_torso, _ = cKDTree(self.centroid[seen2]).query(points, k=1, distance_upper_bound=3.0)
+        return {"points": int(len(points)), "rms_mm": float(np.sqrt(np.mean(d ** 2))),
+                "p95_mm": float(np.percentile(d, 95)), "max_mm": float(d.max()),
+                "beyond_2mm": int((d > 2).sum()),
+                "coverage": float(self.area[seen2][covered].sum() / max(self.area[seen2].sum(), 1e-9)),
+                "seen_area_cm2": float(area_cm2),
+                "density_per_cm2": float(np.isfinite(on_torso).sum() / max(area_cm2, 1e-9))}
+
+
+def sgbm_arm(images, cams, centre, radius_mm=400.0, step=2, block=5) -> tuple[np.ndarray, float]:
+    """StereoSGBM on each neighbouring rectified pair, triangulated; (points, seconds)."""
+    t0 = time.perf_counter()
+    pts = []
+    for k in range(len(images) - 1):
+        pair = rectify_pair(cams[k], cams[k + 1])
+        L = pair.resample("left", images[k])
+        R = pair.resample("right", images[k + 1])
+        roi = region_of_interest(L.astype(np.float32))
+        d0, d1 = pair.disparity_range(*subject_depth_bounds(pair, centre, radius_mm))
+        dmin = int(np.floor(d0))
+        ndisp = int(np.ceil((d1 - dmin) / 16.0)) * 16
+        # a competent user crops to the rows where the subject is
+        rows = np.nonzero(roi.any(axis=1))[0]
+        r0, r1 = max(rows.min() - 8, 0), min(rows.max() + 9, L.shape[0])
+        sgbm = cv2.StereoSGBM_create(minDisparity=dmin, numDisparities=ndisp, blockSize=block,
+                                     P1=8 * block * block, P2=32 * block * block, disp12MaxDiff=1,
+                                     uniquenessRatio=10, speckleWindowSize=100, speckleRange=2,
+                                     preFilterCap=63, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+        disp = sgbm.compute(L[r0:r1], R[r0:r1]).astype(np.float32) / 16.0
+        yy, xx = np.mgrid[r0:r1:step, 0:L.shape[1]:step]
+        dd = disp[yy - r0, xx]
+        ok = roi[yy, xx] & (dd >= dmin)
+        xl = np.column_stack([xx[ok], yy[ok]]).astype(float)
+        xr = xl - np.column_stack([dd[ok], np.zeros(ok.sum())])
+        obs = np.stack([pair.to_original("left", xl), pair.to_original("right", xr)], axis=1)
+        res = intersect([cams[k], cams[k + 1]], obs, IntersectionConfig(chi2_ray=1e12, min_angle_deg=0))
+        pts.append(res["X"][res["valid"]])
+    return np.concatenate(pts), time.perf_counter() - t0
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", default="bench-out/paper")
+    ap.add_argument("--capture", default="visit0-a")
+    ap.add_argument("--calibration", default="bench-out/paper-calibration.json",
+                    help="our own calibration of the rig (arm A is also reconstructed with it)")
+    ap.add_argument("--arms", default="A,B,C,D")
+    ap.add_argument("--no-pycolmap", action="store_true")
+    args = ap.parse_args()
+    S = Path(args.scenario)
+    rig = read_rig(S / "rig.json")
+    truth_cal = read_calibration(S / "truth" / args.capture / "calibration.json")
+    cap = read_capture(S / "captures" / args.capture, rig)
+    truth = Truth(S, args.capture)
+    centre = rig_centre(list(truth_cal.cameras.values()))
+    out = {"machine": machine(), "command": " ".join(["benchmarks/bench_reconstruct_arm.py", *sys.argv[1:]]),
+           "arms": {}}
+    total_ours = 0.0
+    for arm in args.arms.split(","):
+        ids = arm_cameras(rig, arm)
+        cams = [truth_cal.cameras[c] for c in ids]
+        t0 = time.perf_counter()
+        surface, report = reconstruct_arm(cap, rig, truth_cal, arm)
+        t_ours = time.perf_counter() - t0
+        total_ours += t_ours
+        row = {"ours": {**truth.figures(surface.points, cams), "seconds": t_ours,
+                        "rays_per_point": report["rays_per_point"]}}
+        images = [load_image(cap, c, rig) for c in ids]
+        sg, t_sg = sgbm_arm(images, cams, centre)
+        row["sgbm"] = {**truth.figures(sg, cams), "seconds": t_sg}
+        if not args.no_pycolmap and arm == "A":
+            from peer_pycolmap import pycolmap_arm
+
+            t0 = time.perf_counter()
+            pc = pycolmap_arm(images, cams, Path("bench-out") / f"pycolmap-{arm}")
+            row["pycolmap"] = {**truth.figures(pc["points"], cams), "seconds": time.perf_counter() - t0}
+        out["arms"][arm] = row
+        print(arm, json.dumps({k: {kk: (round(vv, 4) if isinstance(vv, float) else vv) for kk, vv in v.items()
+                                   if kk != "rays_per_point"} for k, v in row.items()}), flush=True)
+    out["four_arms_seconds_ours"] = total_ours
+    calib = Path(args.calibration)
+    if calib.exists():
+        own = read_calibration(calib)
+        # our calibration is of the rig before the arms swung: compare arm A, which does not move
+        surface, _ = reconstruct_arm(cap, rig, own, "A")
+        cams = [own.cameras[c] for c in arm_cameras(rig, "A")]
+        out["arm_A_own_calibration"] = truth.figures(surface.points, cams)
+        print("A with our calibration", out["arm_A_own_calibration"], flush=True)
+    dest = Path("bench-out/bench_reconstruct_arm.json")
+    dest.write_text(json.dumps(out, indent=2))
+    print(f"raw figures: {dest}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
