@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from recon_engine.calibration import calibrate, compare_cameras, working_volume_points  # noqa: E402
 from recon_engine.camera import Camera  # noqa: E402
-from recon_engine.formats import read_calibration, read_capture, read_rig, read_testfield  # noqa: E402
+from recon_engine.formats import read_calibration, read_capture, read_rig, read_testfield, write_calibration  # noqa: E402
 from recon_engine.simulator.config import preset  # noqa: E402
 from recon_engine.simulator.scenario import simulate  # noqa: E402
 from recon_engine.stability import compare_calibrations  # noqa: E402
@@ -125,6 +125,8 @@ def main() -> int:
     t0 = time.perf_counter()
     calib, report = calibrate(caps, rig, tf, progress=lambda m: print(f"  {m}", flush=True))
     t_ours = time.perf_counter() - t0
+    # the arm-reconstruction benchmark reuses this calibration
+    write_calibration(base.parent / f"{base.name}-calibration.json", calib)
     noise = corner_noise(base, report.targets)
     res_rms = float(np.sqrt(np.mean([v ** 2 for v in report.residual_rms_px.values() if v is not None])))
     ours_rows, ours = figures(calib.cameras, truth, pts)

@@ -84,16 +84,25 @@ class Truth:
         if len(points) == 0:
             return {"points": 0}
         d = self.distance(points)
-        seen2 = np.sum([self.seen(c) for c in cams], axis=0) >= 2
+        seen = np.array([self.seen(c) for c in cams])
+        seen2 = seen.sum(axis=0) >= 2
         area_cm2 = self.area[seen2].sum() / 100.0
         near, _ = cKDTree(points).query(self.centroid[seen2], k=1, distance_upper_bound=2.0)
         covered = np.isfinite(near)
+        # the same, only where two cameras see the skin within 60 deg of its normal
+        cos = np.array([np.abs(np.sum((c.C - self.centroid) / np.linalg.norm(c.C - self.centroid, axis=1)[:, None]
+                                      * self.normal, axis=1)) for c in cams])
+        second = np.sort(np.where(seen, cos, 0), axis=0)[-2][seen2]
+        frontal = second >= 0.5
         # density over the seen torso: points that lie on it (within 2 mm of a seen triangle's centroid region)
         on_torso, _ = cKDTree(self.centroid[seen2]).query(points, k=1, distance_upper_bound=3.0)
         return {"points": int(len(points)), "rms_mm": float(np.sqrt(np.mean(d ** 2))),
                 "p95_mm": float(np.percentile(d, 95)), "max_mm": float(d.max()),
                 "beyond_2mm": int((d > 2).sum()),
                 "coverage": float(self.area[seen2][covered].sum() / max(self.area[seen2].sum(), 1e-9)),
+                "coverage_within_60deg": float(self.area[seen2][covered & frontal].sum()
+                                               / max(self.area[seen2][frontal].sum(), 1e-9)),
+                "area_beyond_60deg_fraction": float(self.area[seen2][~frontal].sum() / max(self.area[seen2].sum(), 1e-9)),
                 "seen_area_cm2": float(area_cm2),
                 "density_per_cm2": float(np.isfinite(on_torso).sum() / max(area_cm2, 1e-9))}
 
