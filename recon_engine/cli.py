@@ -128,6 +128,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("calibration_b", metavar="CALIBRATION_B.json")
     p.set_defaults(func=_cmd_stability)
 
+    p = sub.add_parser("reconstruct", help="the torso from one torso capture: all arms, ICPatch, fusion")
+    p.add_argument("--rig", required=True)
+    p.add_argument("--calibration", required=True)
+    p.add_argument("--out", required=True, help="folder for torso.ply, torso-mesh.ply and report.json")
+    p.add_argument("--force", action="store_true", help="write into OUT even if it holds files")
+    p.add_argument("capture", metavar="CAPTURE", help="torso capture bundle (folder or .zip)")
+    p.set_defaults(func=_cmd_reconstruct)
+
     p = sub.add_parser("reconstruct-arm", help="the point surface one arm sees in a torso capture")
     p.add_argument("--rig", required=True)
     p.add_argument("--calibration", required=True)
@@ -163,6 +171,41 @@ def _cmd_reconstruct_arm(args) -> int:
     for cam_id, why in report["unusable_images"].items():
         print(f"image {cam_id} unusable: {why}", file=sys.stderr)
     print(f"wrote {out} and {report_path}")
+    return 0
+
+
+def _cmd_reconstruct(args) -> int:
+    from .formats import read_calibration, read_capture, read_rig, write_json
+    from .reconstruction import reconstruct_torso
+    from .surface import write_ply
+
+    rig = read_rig(args.rig)
+    calibration = read_calibration(args.calibration)
+    if calibration.rig != rig.serial:
+        raise FormatError(args.calibration, f"rig is {calibration.rig!r}, but rig.json is {rig.serial!r}")
+    capture = read_capture(args.capture, rig)
+    if capture.kind != "torso":
+        raise FormatError(capture.source, f"kind is {capture.kind!r}: reconstruction needs a 'torso' capture")
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()) and not args.force:
+        raise FileExistsError(f"{out}: already exists and is not empty (use --force to replace its files)")
+    result = reconstruct_torso(capture, rig, calibration, progress=lambda m: print(f"  {m}", flush=True))
+    out.mkdir(parents=True, exist_ok=True)
+    frame = result["report"]["frame"]
+    write_ply(out / "torso.ply", result["points"], result["normals"], None,
+              {"sigma_mm": result["sigma_mm"].astype(np.float32), "fused": result["count"].astype(np.int32)},
+              comments=[f"torsoscan torso, mm, frame: {frame}"])
+    V, F = result["mesh"]
+    write_ply(out / "torso-mesh.ply", V, None, F, comments=[f"torsoscan display mesh (Poisson), mm, frame: {frame}"])
+    write_json(out / "report.json", result["report"])
+    rep = result["report"]
+    print(f"torso: {rep['points']} points, mesh {rep['mesh']['faces']} faces, {rep['seconds']['total']:.1f} s")
+    for p in rep["registration"]["pairs"]:
+        print(f"  {p['a']}-{p['b']}: average normal distance {p['average_normal_distance_mm']:.3f} mm, "
+              f"{p['matched_fraction']:.0%} matched")
+    for arm, why in rep["failed_arms"].items():
+        print(f"arm {arm} not reconstructed: {why}", file=sys.stderr)
+    print(f"wrote {out / 'torso.ply'}, {out / 'torso-mesh.ply'} and {out / 'report.json'}")
     return 0
 
 

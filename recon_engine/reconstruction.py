@@ -14,11 +14,14 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
 
 from .epipolar import rig_centre, subject_depth_bounds
 from .features import local_contrast
 from .formats import Calibration, Capture, FormatError, Rig, load_image
 from .multiview import IntersectionConfig, intersect
+from .registration import ICPatchConfig, Transform, chain_initial, multi_surface_registration
 from .surface import PointSurface, make_surface, off_surface
 from .tracking import TrackingConfig, track_images
 
@@ -154,3 +157,102 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
                     "total": t4 - t0},
     }
     return surface, report
+
+
+@dataclass(frozen=True)
+class TorsoConfig:
+    arm: ReconstructionConfig = field(default_factory=ReconstructionConfig)
+    icpatch: ICPatchConfig = field(default_factory=ICPatchConfig)
+    fuse_cell_fraction: float = 0.6  # fusion cell: this fraction of the median point spacing
+    poisson_depth: int = 9
+    mesh_trim_spacings: float = 3.0  # mesh vertices farther than this many point spacings from the data are cut
+
+
+def fuse_points(points: np.ndarray, normals: np.ndarray, sigma: np.ndarray, cell_mm: float):
+    """Points of overlapping surfaces fused: one precision-weighted mean per cell of ``cell_mm``.
+
+    Returns ``(points, normals, sigma, count)``; ``count`` says how many
+    measured points each fused point averages.
+    """
+    key = np.floor(points / cell_mm).astype(np.int64)
+    _, inv, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    w = 1.0 / np.maximum(sigma, 1e-6) ** 2
+    W = np.bincount(inv, weights=w)
+    P = np.column_stack([np.bincount(inv, weights=w * points[:, k]) for k in range(3)]) / W[:, None]
+    Nn = np.column_stack([np.bincount(inv, weights=w * normals[:, k]) for k in range(3)])
+    Nn /= np.maximum(np.linalg.norm(Nn, axis=1, keepdims=True), 1e-12)
+    return P, Nn, 1.0 / np.sqrt(W), count
+
+
+def poisson_mesh(points: np.ndarray, normals: np.ndarray, depth: int, trim_mm: float):
+    """A watertight display mesh (Open3D's screened Poisson), trimmed to the data. (vertices, faces)."""
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    pcd.normals = o3d.utility.Vector3dVector(normals)
+    mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=depth)
+    V = np.asarray(mesh.vertices)
+    from scipy.spatial import cKDTree
+
+    far, _ = cKDTree(points).query(V, k=1)
+    density = np.asarray(density)
+    mesh.remove_vertices_by_mask((far > trim_mm) | (density < np.quantile(density, 0.01)))
+    return np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+
+
+def reconstruct_torso(capture: Capture, rig: Rig, calibration: Calibration, cfg: TorsoConfig | None = None,
+                      progress=lambda msg: None) -> dict:
+    """The whole torso: every arm reconstructed, registered by ICPatch and fused, in the reference arm's frame.
+
+    Returns ``{"points", "normals", "sigma_mm", "mesh": (vertices, faces), "report"}``.
+    """
+    cfg = cfg or TorsoConfig()
+    t0 = time.perf_counter()
+    order = [a.id for a in rig.arms]
+    reference = rig.reference_arm.id
+    surfaces, arm_reports, failed = {}, {}, {}
+    for arm in order:
+        try:
+            surfaces[arm], arm_reports[arm] = reconstruct_arm(capture, rig, calibration, arm, cfg.arm, progress)
+            progress(f"arm {arm}: {arm_reports[arm]['points']} points in {arm_reports[arm]['seconds']['total']:.1f} s")
+        except ValueError as exc:
+            failed[arm] = str(exc)
+            progress(f"arm {arm} not reconstructed: {exc}")
+    if reference not in surfaces:
+        raise ValueError(f"the reference arm {reference} could not be reconstructed: {failed.get(reference)}")
+    order = [a for a in order if a in surfaces]
+    t1 = time.perf_counter()
+    T, pairwise = ({reference: Transform.identity()}, [])
+    multi = {"transforms": T, "pairs": [], "sigmas": {}, "iterations": 0, "converged": True}
+    if len(order) > 1:
+        progress("pair-wise ICPatch around the rig")
+        T, pairwise = chain_initial(surfaces, order, reference, cfg.icpatch, progress=progress)
+        progress("multiple surface registration")
+        multi = multi_surface_registration(surfaces, order, reference, T, cfg.icpatch, progress=progress)
+        T = multi["transforms"]
+    t2 = time.perf_counter()
+    pts = np.concatenate([T[a].apply(surfaces[a].points) for a in order])
+    nrm = np.concatenate([T[a].rotate(surfaces[a].normals) for a in order])
+    sig = np.concatenate([surfaces[a].data["sigma_mm"] * T[a].scale for a in order])
+    spacing = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1]))
+    P, N, S, count = fuse_points(pts, nrm, sig, cfg.fuse_cell_fraction * spacing)
+    t3 = time.perf_counter()
+    progress(f"Poisson mesh of {len(P)} fused points")
+    mesh = poisson_mesh(P, N, cfg.poisson_depth, cfg.mesh_trim_spacings * spacing)
+    t4 = time.perf_counter()
+    report = {
+        "format": "torso-reconstruction/1",
+        "points": int(len(P)),
+        "frame": f"arm {reference} as calibrated ({calibration.frame})",
+        "registration": {
+            "pairs": multi["pairs"],
+            "pairwise": pairwise,
+            "transforms": {a: T[a].to_dict() for a in order},
+            "sigmas": multi["sigmas"],
+            "iterations": multi["iterations"], "converged": multi["converged"],
+        },
+        "arms": arm_reports, "failed_arms": failed,
+        "fused_from": int(len(pts)), "point_spacing_mm": spacing,
+        "mesh": {"vertices": int(len(mesh[0])), "faces": int(len(mesh[1]))},
+        "seconds": {"arms": t1 - t0, "registration": t2 - t1, "fusion": t3 - t2, "mesh": t4 - t3, "total": t4 - t0},
+    }
+    return {"points": P, "normals": N, "sigma_mm": S, "count": count, "mesh": mesh, "report": report}

@@ -174,3 +174,123 @@ def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None
             "rms_normal_distance_mm": float(np.sqrt(np.mean(d ** 2))),
             "matched_fraction": float(len(idx) / len(X)), "pairs": int(len(idx)),
             "acceptance_distance_mm": float(dist), "iterations": it, "converged": converged}
+
+
+def _subsample(n: int, max_points: int, seed: int = 0) -> np.ndarray:
+    if n <= max_points:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(seed).choice(n, max_points, replace=False))
+
+
+def chain_initial(surfaces: dict, order: list, reference: str, cfg: ICPatchConfig | None = None,
+                  initial: dict | None = None, progress=lambda msg: None) -> tuple[dict, list]:
+    """Initial transforms from pair-wise ICPatch along the circle from the reference arm.
+
+    Each arm is registered to its predecessor (already placed), starting from
+    ``initial`` (default: identity, the arms' nominal placement from the
+    calibration). Returns ``(transforms, pairwise results)``.
+    """
+    i0 = order.index(reference)
+    seq = order[i0:] + order[:i0]
+    T = {reference: Transform.identity()}
+    results = []
+    for prev, arm in zip(seq[:-1], seq[1:]):
+        start = (initial or {}).get(arm, T[prev])
+        # register in the predecessor's frame, then carry into the reference frame
+        local = T[prev].inverse().compose(start)
+        res = icpatch(surfaces[arm], surfaces[prev], local, cfg)
+        T[arm] = T[prev].compose(res["transform"])
+        results.append({"a": arm, "b": prev, **{k: v for k, v in res.items() if k != "transform"}})
+        progress(f"ICPatch {arm} to {prev}: {res['average_normal_distance_mm']:.3f} mm, "
+                 f"{res['matched_fraction']:.0%} matched")
+    return T, results
+
+
+def multi_surface_registration(surfaces: dict, order: list, reference: str, initial: dict,
+                               cfg: ICPatchConfig | None = None, max_points_per_pair: int = 20000,
+                               progress=lambda msg: None) -> dict:
+    """All surfaces in one least-squares adjustment, ``reference`` held fixed.
+
+    Observations: the normal distances of every neighbouring pair's
+    point–patch correspondences around the circle ``order`` (including the
+    pair that closes it), so the misclosure of a chain of pair-wise results is
+    spread over all pairs instead of piling up at the end.
+
+    Returns ``{"transforms": {arm: Transform}, "sigmas": {arm: {...}}, "pairs":
+    [{"a", "b", "average_normal_distance_mm", "matched_fraction", ...}], "iterations", "converged"}``.
+    """
+    cfg = cfg or ICPatchConfig()
+    arms = list(order)
+    free = [a for a in arms if a != reference]
+    col = {a: 7 * i for i, a in enumerate(free)}
+    n_par = 7 * len(free)
+    pairs = [(arms[i], arms[(i + 1) % len(arms)]) for i in range(len(arms))] if len(arms) > 2 else [(arms[1], arms[0])]
+    index = {a: PatchIndex(surfaces[a]) for a in arms}
+    sample = {(a, b): _subsample(len(surfaces[a].points), max_points_per_pair, seed=k)
+              for k, (a, b) in enumerate(pairs)}
+    T = {a: initial.get(a, Transform.identity()) for a in arms}
+    T[reference] = Transform.identity()
+    dist = {p: cfg.min_distance_mm * 4 for p in pairs}
+    # start from the pair-wise solution: its acceptance distances are already tight
+    dist = {p: max(cfg.min_distance_mm, 2.0) for p in pairs}
+    converged = False
+    it = 0
+    scale_weight = 0.0 if cfg.estimate_scale else 1e12
+    for it in range(1, cfg.max_iterations + 1):
+        N = np.zeros((n_par, n_par))
+        rhs = np.zeros(n_par)
+        centres = {a: T[a].apply(surfaces[a].points.mean(axis=0)) for a in arms}
+        stats = {}
+        for (a, b) in pairs:
+            idx_all = sample[(a, b)]
+            X = surfaces[a].points[idx_all]
+            rel = T[b].inverse().compose(T[a])
+            idx, n_loc, p0_loc, d_loc = correspondences(X, surfaces[a].normals[idx_all], index[b], rel,
+                                                        dist[(a, b)], cfg)
+            x = T[a].apply(X[idx])
+            n = T[b].rotate(n_loc)
+            d = d_loc * T[b].scale
+            foot = x - d[:, None] * n
+            stats[(a, b)] = (d, len(idx), len(idx_all))
+            blocks = []
+            if a in col:
+                Ya = x - centres[a]
+                blocks.append((col[a], np.column_stack([np.sum(n * Ya, axis=1), np.cross(Ya, n), n])))
+            if b in col:
+                Yb = foot - centres[b]
+                blocks.append((col[b], -np.column_stack([np.sum(n * Yb, axis=1), np.cross(Yb, n), n])))
+            for ca, Ja in blocks:
+                rhs[ca:ca + 7] -= Ja.T @ d
+                for cb, Jb in blocks:
+                    N[ca:ca + 7, cb:cb + 7] += Ja.T @ Jb
+        for a in free:
+            N[col[a], col[a]] += scale_weight
+        dx = np.linalg.solve(N, rhs)
+        biggest = 0.0
+        for a in free:
+            ds, w, dt = dx[col[a]], dx[col[a] + 1:col[a] + 4], dx[col[a] + 4:col[a] + 7]
+            dR = rodrigues(w)
+            c = centres[a]
+            T[a] = Transform(T[a].scale * (1 + ds), dR @ T[a].R, (1 + ds) * dR @ (T[a].t - c) + c + dt)
+            biggest = max(biggest, np.linalg.norm(w) / cfg.tol_rotation_rad, np.linalg.norm(dt) / cfg.tol_translation_mm,
+                          abs(ds) / cfg.tol_scale)
+        for p, (d, _, _) in stats.items():
+            if len(d):
+                dist[p] = max(cfg.min_distance_mm, min(dist[p], cfg.tighten_k * float(np.sqrt(np.mean(d ** 2)))))
+        if biggest < 1.0:
+            converged = True
+            break
+    # figures at the solution; covariance from the last normal equations
+    dof = max(sum(len(s[0]) for s in stats.values()) - n_par, 1)
+    s0 = float(np.sqrt(sum(float(np.sum(s[0] ** 2)) for s in stats.values()) / dof))
+    cov = s0 ** 2 * np.linalg.inv(N)
+    names = ("scale", "omega_rad", "phi_rad", "kappa_rad", "tx_mm", "ty_mm", "tz_mm")
+    sig = {a: dict(zip(names, map(float, np.sqrt(np.diag(cov)[col[a]:col[a] + 7])))) for a in free}
+    pair_rows = []
+    for (a, b), (d, k, n_all) in stats.items():
+        pair_rows.append({"a": a, "b": b, "average_normal_distance_mm": float(np.mean(np.abs(d))) if k else None,
+                          "rms_normal_distance_mm": float(np.sqrt(np.mean(d ** 2))) if k else None,
+                          "matched_fraction": float(k / max(n_all, 1)), "pairs": int(k)})
+        progress(f"multiple registration {a}-{b}: {pair_rows[-1]['average_normal_distance_mm']:.3f} mm")
+    return {"transforms": T, "sigmas": sig, "pairs": pair_rows, "iterations": it, "converged": converged,
+            "sigma0_mm": s0}

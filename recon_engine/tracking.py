@@ -27,7 +27,7 @@ from .matching import MatchingConfig, match_points
 
 @dataclass(frozen=True)
 class TrackingConfig:
-    spacing: int = 4  # px, minimum distance between Harris features (the density)
+    spacing: int = 3  # px, minimum distance between Harris features (the density: ~1 mm on the skin at paper scale)
     roi_window: int = 15  # px, contrast window of the region of interest
     merge_radius_px: float = 2.0  # a fresh feature this close to an arriving track merges into it
     conflict_radius_px: float = 0.3  # two tracks closer than this in the next image conflict
