@@ -10,8 +10,13 @@ SYSDEPS := libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1
 
 .PHONY: demo test venv sysdeps bench clean
 
+DEMO := demo-out
 demo: $(STAMP)
-	$(VENV)/bin/torsoscan simulate --preset tiny --out demo-out/scenario --force
+	$(VENV)/bin/torsoscan simulate --preset tiny --out $(DEMO)/scenario --force
+	$(VENV)/bin/torsoscan calibrate --rig $(DEMO)/scenario/rig.json --testfield $(DEMO)/scenario/testfield.json \
+		--out $(DEMO)/calibration.json --report $(DEMO)/calibration-report.json $(DEMO)/scenario/captures/testfield-pose*
+	$(VENV)/bin/torsoscan reconstruct --rig $(DEMO)/scenario/rig.json --calibration $(DEMO)/calibration.json \
+		--out $(DEMO)/visit0-a --force $(DEMO)/scenario/captures/visit0-a
 
 test: $(STAMP)
 	$(PY) -m pytest -q tests

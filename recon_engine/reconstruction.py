@@ -21,7 +21,7 @@ from .epipolar import rig_centre, subject_depth_bounds
 from .features import local_contrast
 from .formats import Calibration, Capture, FormatError, Rig, load_image
 from .multiview import IntersectionConfig, intersect
-from .registration import ICPatchConfig, Transform, chain_initial, multi_surface_registration
+from .registration import ICPatchConfig, Transform, chain_initial, multi_surface_registration, pair_fit
 from .surface import PointSurface, make_surface, off_surface
 from .tracking import TrackingConfig, track_images
 
@@ -221,11 +221,16 @@ def reconstruct_torso(capture: Capture, rig: Rig, calibration: Calibration, cfg:
         raise ValueError(f"the reference arm {reference} could not be reconstructed: {failed.get(reference)}")
     order = [a for a in order if a in surfaces]
     t1 = time.perf_counter()
-    T, pairwise = ({reference: Transform.identity()}, [])
+    T, pairwise, closing = ({reference: Transform.identity()}, [], None)
     multi = {"transforms": T, "pairs": [], "sigmas": {}, "iterations": 0, "converged": True}
     if len(order) > 1:
         progress("pair-wise ICPatch around the rig")
         T, pairwise = chain_initial(surfaces, order, reference, cfg.icpatch, progress=progress)
+        if len(order) > 2:
+            # what the chain of pair-wise results leaves at the pair that closes the circle
+            last = order[order.index(reference) - 1]
+            closing = {"a": last, "b": reference,
+                       **pair_fit(surfaces[last], surfaces[reference], T[last], T[reference], 2.0, cfg.icpatch)}
         progress("multiple surface registration")
         multi = multi_surface_registration(surfaces, order, reference, T, cfg.icpatch, progress=progress)
         T = multi["transforms"]
@@ -246,6 +251,7 @@ def reconstruct_torso(capture: Capture, rig: Rig, calibration: Calibration, cfg:
         "registration": {
             "pairs": multi["pairs"],
             "pairwise": pairwise,
+            "closing_pair_after_pairwise_only": closing,
             "transforms": {a: T[a].to_dict() for a in order},
             "sigmas": multi["sigmas"],
             "iterations": multi["iterations"], "converged": multi["converged"],

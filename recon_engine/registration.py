@@ -294,3 +294,15 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         progress(f"multiple registration {a}-{b}: {pair_rows[-1]['average_normal_distance_mm']:.3f} mm")
     return {"transforms": T, "sigmas": sig, "pairs": pair_rows, "iterations": it, "converged": converged,
             "sigma0_mm": s0}
+
+
+def pair_fit(moving: PointSurface, fixed: PointSurface, T_moving: Transform, T_fixed: Transform,
+             max_distance_mm: float = 2.0, cfg: ICPatchConfig | None = None) -> dict:
+    """How well two placed surfaces fit: average normal distance (mm) and matched fraction of ``moving``."""
+    cfg = cfg or ICPatchConfig()
+    rel = T_fixed.inverse().compose(T_moving)
+    idx, _, _, d = correspondences(moving.points, moving.normals, PatchIndex(fixed), rel, max_distance_mm, cfg)
+    d = d * T_fixed.scale
+    return {"average_normal_distance_mm": float(np.mean(np.abs(d))) if len(d) else None,
+            "signed_mean_mm": float(np.mean(d)) if len(d) else None,
+            "matched_fraction": float(len(idx) / max(len(moving.points), 1))}
