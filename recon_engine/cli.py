@@ -206,6 +206,13 @@ def _cmd_reconstruct(args) -> int:
     for arm, why in rep["failed_arms"].items():
         print(f"arm {arm} not reconstructed: {why}", file=sys.stderr)
     print(f"wrote {out / 'torso.ply'}, {out / 'torso-mesh.ply'} and {out / 'report.json'}")
+    if rep["status"] == "partial":
+        print("torsoscan reconstruct: PARTIAL torso: " + "; ".join(rep["problems"]), file=sys.stderr)
+    if rep["status"] == "failed":
+        # the files stay for inspection, but the torso is not presented as good
+        print("torsoscan reconstruct: REGISTRATION FAILED, do not use this torso:\n  " + "\n  ".join(rep["problems"]),
+              file=sys.stderr)
+        return 3
     return 0
 
 

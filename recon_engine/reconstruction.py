@@ -223,18 +223,40 @@ def reconstruct_torso(capture: Capture, rig: Rig, calibration: Calibration, cfg:
     t1 = time.perf_counter()
     T, pairwise, closing = ({reference: Transform.identity()}, [], None)
     multi = {"transforms": T, "pairs": [], "sigmas": {}, "iterations": 0, "converged": True}
+    problems = []
     if len(order) > 1:
-        progress("pair-wise ICPatch around the rig")
-        T, pairwise = chain_initial(surfaces, order, reference, cfg.icpatch, progress=progress)
-        if len(order) > 2:
-            # what the chain of pair-wise results leaves at the pair that closes the circle
-            last = order[order.index(reference) - 1]
-            closing = {"a": last, "b": reference,
-                       **pair_fit(surfaces[last], surfaces[reference], T[last], T[reference], 2.0, cfg.icpatch)}
-        progress("multiple surface registration")
-        multi = multi_surface_registration(surfaces, order, reference, T, cfg.icpatch, progress=progress)
-        T = multi["transforms"]
+        try:
+            progress("pair-wise ICPatch around the rig")
+            T, pairwise = chain_initial(surfaces, order, reference, cfg.icpatch, progress=progress)
+            if len(order) > 2:
+                # what the chain of pair-wise results leaves at the pair that closes the circle
+                last = order[order.index(reference) - 1]
+                closing = {"a": last, "b": reference,
+                           **pair_fit(surfaces[last], surfaces[reference], T[last], T[reference], 2.0, cfg.icpatch)}
+            progress("multiple surface registration")
+            multi = multi_surface_registration(surfaces, order, reference, T, cfg.icpatch, progress=progress)
+            T = multi["transforms"]
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            # the arms stay where the calibration put them; the torso is marked as failed below
+            problems.append(f"registration failed: {exc}")
+            T = {a: T.get(a, Transform.identity()) for a in order}
     t2 = time.perf_counter()
+    if not multi["converged"]:
+        problems.append(f"the multiple registration did not converge in {multi['iterations']} iterations")
+    for p in multi["pairs"]:
+        if p["pairs"] < cfg.icpatch.min_pairs:
+            problems.append(f"arms {p['a']} and {p['b']} barely overlap: {p['pairs']} point-patch pairs "
+                            f"(at least {cfg.icpatch.min_pairs} needed)")
+        else:
+            # what the two surfaces' own precision allows, and never more than the configured floor
+            own = 3.0 * max(float(np.median(surfaces[p["a"]].data["sigma_mm"])),
+                            float(np.median(surfaces[p["b"]].data["sigma_mm"])))
+            limit = max(cfg.icpatch.max_average_distance_mm, own)
+            if p["average_normal_distance_mm"] > limit:
+                problems.append(f"arms {p['a']} and {p['b']} do not fit: average normal distance "
+                                f"{p['average_normal_distance_mm']:.2f} mm > {limit:.2f} mm")
+    for problem in problems:
+        progress(f"registration problem: {problem}")
     pts = np.concatenate([T[a].apply(surfaces[a].points) for a in order])
     nrm = np.concatenate([T[a].rotate(surfaces[a].normals) for a in order])
     sig = np.concatenate([surfaces[a].data["sigma_mm"] * T[a].scale for a in order])
@@ -248,6 +270,9 @@ def reconstruct_torso(capture: Capture, rig: Rig, calibration: Calibration, cfg:
         "format": "torso-reconstruction/1",
         "points": int(len(P)),
         "frame": f"arm {reference} as calibrated ({calibration.frame})",
+        # failed: the registration is not trustworthy; partial: registered, but arms are missing
+        "status": "failed" if problems else ("partial" if failed else "ok"),
+        "problems": problems + [f"arm {a} not reconstructed: {why}" for a, why in failed.items()],
         "registration": {
             "pairs": multi["pairs"],
             "pairwise": pairwise,
@@ -261,4 +286,5 @@ def reconstruct_torso(capture: Capture, rig: Rig, calibration: Calibration, cfg:
         "mesh": {"vertices": int(len(mesh[0])), "faces": int(len(mesh[1]))},
         "seconds": {"arms": t1 - t0, "registration": t2 - t1, "fusion": t3 - t2, "mesh": t4 - t3, "total": t4 - t0},
     }
-    return {"points": P, "normals": N, "sigma_mm": S, "count": count, "mesh": mesh, "report": report}
+    return {"points": P, "normals": N, "sigma_mm": S, "count": count, "mesh": mesh, "report": report,
+            "surfaces": surfaces, "transforms": T}

@@ -39,6 +39,11 @@ class ICPatchConfig:
     tol_translation_mm: float = 1e-3
     tol_scale: float = 1e-5
     estimate_scale: bool = True
+    freeze_after: int = 12  # iterations with fresh point-patch pairs; then they are kept until convergence
+    negligible_sigma: float = 0.01  # corrections below this many of their standard deviations have vanished
+    overlap_distance_mm: float = 3.0  # a point over a patch interior this close is in the overlap
+    min_pairs: int = 20  # fewer point-patch pairs: the surfaces barely overlap, the result is not trusted
+    max_average_distance_mm: float = 0.5  # a pair fitting worse than this (or 3x the points' precision) failed
 
 
 @dataclass
@@ -135,7 +140,10 @@ def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None
     converged = False
     it = 0
     for it in range(1, cfg.max_iterations + 1):
-        idx, n, p0, d = correspondences(X, moving.normals, index, T, dist, cfg)
+        if it <= cfg.freeze_after:
+            pairs_now = correspondences(X, moving.normals, index, T, dist, cfg)
+        idx, n, p0, _ = pairs_now
+        d = np.sum((T.apply(X[idx]) - p0) * n, axis=1)
         if len(idx) < 7:
             raise ValueError(f"ICPatch: only {len(idx)} point-patch pairs within {dist:.1f} mm: "
                              "the surfaces do not overlap under the initial transformation")
@@ -153,8 +161,10 @@ def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None
         T = Transform(T.scale * (1 + ds), dR @ T.R, (1 + ds) * dR @ (T.t - c_moved) + c_moved + dt)
         rms = float(np.sqrt(np.mean(d ** 2)))
         dist = max(cfg.min_distance_mm, min(dist, cfg.tighten_k * rms))
-        if np.linalg.norm(w) < cfg.tol_rotation_rad and np.linalg.norm(dt) < cfg.tol_translation_mm \
-                and abs(ds) < cfg.tol_scale:
+        sd = rms * np.sqrt(np.abs(np.diag(np.linalg.inv(N))))
+        negligible = bool(np.all(np.abs(dx) <= cfg.negligible_sigma * np.maximum(sd, 1e-15)))
+        if negligible or (np.linalg.norm(w) < cfg.tol_rotation_rad and np.linalg.norm(dt) < cfg.tol_translation_mm
+                          and abs(ds) < cfg.tol_scale):
             converged = True
             break
     idx, n, p0, d = correspondences(X, moving.normals, index, T, dist, cfg)
@@ -235,6 +245,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
     dist = {p: max(cfg.min_distance_mm, 2.0) for p in pairs}
     converged = False
     it = 0
+    frozen = {}
     scale_weight = 0.0 if cfg.estimate_scale else 1e12
     for it in range(1, cfg.max_iterations + 1):
         N = np.zeros((n_par, n_par))
@@ -245,8 +256,12 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             idx_all = sample[(a, b)]
             X = surfaces[a].points[idx_all]
             rel = T[b].inverse().compose(T[a])
-            idx, n_loc, p0_loc, d_loc = correspondences(X, surfaces[a].normals[idx_all], index[b], rel,
-                                                        dist[(a, b)], cfg)
+            if it <= cfg.freeze_after:
+                frozen[(a, b)] = correspondences(X, surfaces[a].normals[idx_all], index[b], rel, dist[(a, b)], cfg)
+            # after a few iterations the pairs are kept, so the adjustment converges instead of
+            # jittering as points at the acceptance limit come and go
+            idx, n_loc, p0_loc, _ = frozen[(a, b)]
+            d_loc = np.sum((rel.apply(X[idx]) - p0_loc) * n_loc, axis=1)
             x = T[a].apply(X[idx])
             n = T[b].rotate(n_loc)
             d = d_loc * T[b].scale
@@ -266,6 +281,12 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         for a in free:
             N[col[a], col[a]] += scale_weight
         dx = np.linalg.solve(N, rhs)
+        # corrections far below their own standard deviations also count as vanished: with few
+        # points the set of pairs keeps changing a little and the corrections jitter at that level
+        n_obs = sum(len(st[0]) for st in stats.values())
+        s0_it = np.sqrt(sum(float(np.sum(st[0] ** 2)) for st in stats.values()) / max(n_obs - n_par, 1))
+        sd = s0_it * np.sqrt(np.abs(np.diag(np.linalg.inv(N))))
+        negligible = bool(np.all(np.abs(dx) <= cfg.negligible_sigma * np.maximum(sd, 1e-15)))
         biggest = 0.0
         for a in free:
             ds, w, dt = dx[col[a]], dx[col[a] + 1:col[a] + 4], dx[col[a] + 4:col[a] + 7]
@@ -277,7 +298,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         for p, (d, _, _) in stats.items():
             if len(d):
                 dist[p] = max(cfg.min_distance_mm, min(dist[p], cfg.tighten_k * float(np.sqrt(np.mean(d ** 2)))))
-        if biggest < 1.0:
+        if biggest < 1.0 or negligible:
             converged = True
             break
     # figures at the solution; covariance from the last normal equations
@@ -287,10 +308,21 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
     names = ("scale", "omega_rad", "phi_rad", "kappa_rad", "tx_mm", "ty_mm", "tz_mm")
     sig = {a: dict(zip(names, map(float, np.sqrt(np.diag(cov)[col[a]:col[a] + 7])))) for a in free}
     pair_rows = []
+    loose = ICPatchConfig(max_normal_angle_deg=90.0, edge_margin=cfg.edge_margin)
     for (a, b), (d, k, n_all) in stats.items():
+        # the overlap: points over the interior of a patch of b within a generous distance
+        idx_all = sample[(a, b)]
+        rel = T[b].inverse().compose(T[a])
+        over_idx = correspondences(surfaces[a].points[idx_all], None, index[b], rel, cfg.overlap_distance_mm,
+                                   loose)[0]
+        over = len(over_idx)
+        matched_in_overlap = int(np.isin(frozen[(a, b)][0], over_idx).sum())
         pair_rows.append({"a": a, "b": b, "average_normal_distance_mm": float(np.mean(np.abs(d))) if k else None,
                           "rms_normal_distance_mm": float(np.sqrt(np.mean(d ** 2))) if k else None,
-                          "matched_fraction": float(k / max(n_all, 1)), "pairs": int(k)})
+                          "matched_fraction": float(k / max(n_all, 1)),
+                          "overlap_fraction": float(over / max(n_all, 1)),
+                          "overlap_matched_fraction": float(matched_in_overlap / over) if over else 0.0,
+                          "pairs": int(k), "acceptance_distance_mm": float(dist[(a, b)])})
         progress(f"multiple registration {a}-{b}: {pair_rows[-1]['average_normal_distance_mm']:.3f} mm")
     return {"transforms": T, "sigmas": sig, "pairs": pair_rows, "iterations": it, "converged": converged,
             "sigma0_mm": s0}

@@ -50,3 +50,48 @@ def test_it_refuses_to_write_over_an_earlier_result(torso_scenario, torso_out, c
                "--calibration", str(torso_scenario / "truth" / "calibration.json"),
                "--out", str(torso_out), str(torso_scenario / "captures" / "visit0-a")])
     assert rc == 2 and "already exists" in capsys.readouterr().err
+
+
+def test_the_report_says_the_registration_is_good(torso_out):
+    rep = json.loads((torso_out / "report.json").read_text())
+    assert rep["status"] == "ok" and rep["problems"] == []
+    for p in rep["registration"]["pairs"]:
+        assert 0 < p["overlap_matched_fraction"] <= 1
+
+
+def test_an_arm_without_usable_images_gives_a_partial_torso(torso_scenario, tmp_path, capsys):
+    from recon_engine.formats import load_images, read_capture, read_rig, write_capture
+
+    rig = read_rig(torso_scenario / "rig.json")
+    cap = read_capture(torso_scenario / "captures" / "visit0-a", rig)
+    imgs = {c: im for c, im in load_images(cap, rig).items() if not c.startswith("C")}
+    write_capture(tmp_path / "noC", kind="torso", rig=rig.serial, captured_at=cap.captured_at, images=imgs)
+    rc = main(["reconstruct", "--rig", str(torso_scenario / "rig.json"),
+               "--calibration", str(torso_scenario / "truth" / "calibration.json"),
+               "--out", str(tmp_path / "out"), str(tmp_path / "noC")])
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert rep["failed_arms"].keys() == {"C"} and "arm C not reconstructed" in rep["problems"][-1]
+    # B and D do not overlap: the circle cannot close, the registration is not presented as good
+    assert rc in (0, 3) and rep["status"] in ("partial", "failed")
+    assert "PARTIAL" in capsys.readouterr().err or rep["status"] == "failed"
+
+
+def test_surfaces_that_do_not_fit_fail_the_registration(torso_scenario, tmp_path, capsys):
+    from recon_engine.formats import load_images, read_capture, read_rig, write_capture
+
+    rig = read_rig(torso_scenario / "rig.json")
+    cap = read_capture(torso_scenario / "captures" / "visit0-a", rig)
+    imgs = load_images(cap, rig)
+    # arm B sees another scene: its surface cannot fit its neighbours
+    for c in ("B1", "B2", "B3", "B4", "B5"):
+        imgs[c] = np.ascontiguousarray(np.flipud(imgs[c]))
+    write_capture(tmp_path / "bad", kind="torso", rig=rig.serial, captured_at=cap.captured_at, images=imgs)
+    rc = main(["reconstruct", "--rig", str(torso_scenario / "rig.json"),
+               "--calibration", str(torso_scenario / "truth" / "calibration.json"),
+               "--out", str(tmp_path / "out"), str(tmp_path / "bad")])
+    if rc == 2:  # ICPatch found no overlap at all: refused outright
+        assert "do not overlap" in capsys.readouterr().err
+        return
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert rc == 3 and rep["status"] == "failed" and rep["problems"]
+    assert "REGISTRATION FAILED" in capsys.readouterr().err
