@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -43,6 +44,7 @@ class MatchingConfig:
     uniqueness: float = 0.9  # the second peak must stay below this fraction of the first
     dense_radius: int = 6  # px, stage-2 search either side of the predicted disparity
     scales: tuple = (1.0, 0.8, 1.25)  # stretches of the right window along the row tried in stage 2
+    retry_below_ncc: float = 0.85  # points matched less well than this with one stretch try the next
     neighbours: int = 8  # stage-1 matches that predict a point's disparity
     neighbour_tolerance_px: float = 3.0  # stage-1 match dropped when further from its neighbours' median
     lr_tolerance_px: float = 0.5  # left-right check
@@ -69,11 +71,38 @@ def sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.where(inside, v, 0).astype(np.float32)
 
 
+def sample_many(images, x: np.ndarray, y: np.ndarray) -> list:
+    """``sample`` of several same-sized images at the same positions (float64), weights computed once."""
+    h, w = images[0].shape
+    x0 = np.floor(x).astype(np.int64)
+    y0 = np.floor(y).astype(np.int64)
+    # float32 weights: 1e-7 relative, far below the 1e-3 px the refinement resolves
+    fx = (x - x0).astype(np.float32)
+    fy = (y - y0).astype(np.float32)
+    inside = (x0 >= 0) & (y0 >= 0) & (x0 < w - 1) & (y0 < h - 1)
+    i = np.clip(y0, 0, h - 2) * w + np.clip(x0, 0, w - 2)
+    w00, w01, w10, w11 = (1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy
+    out = []
+    for img in images:
+        flat = np.asarray(img, dtype=np.float32).ravel()
+        v = flat[i] * w00 + flat[i + 1] * w01 + flat[i + w] * w10 + flat[i + w + 1] * w11
+        v[~inside] = 0
+        out.append(v)
+    return out
+
+
 def _box(a: np.ndarray, win: int) -> np.ndarray:
-    """Sums over ``win``×``win`` windows of the last two axes (valid part)."""
-    c = np.cumsum(np.cumsum(a, axis=-2, dtype=np.float32), axis=-1)
-    c = np.pad(c, [(0, 0)] * (a.ndim - 2) + [(1, 0), (1, 0)])
-    return c[..., win:, win:] - c[..., :-win, win:] - c[..., win:, :-win] + c[..., :-win, :-win]
+    """Sums over ``win``×``win`` windows of the last two axes of (N, R, C) strips (valid part).
+
+    The strips are stacked into one tall image for OpenCV's integral image; the
+    windows read never straddle two strips.
+    """
+    n, R, C = a.shape
+    integ = cv2.integral(np.ascontiguousarray(a, dtype=np.float32).reshape(n * R, C), sdepth=cv2.CV_64F)
+    top = (np.arange(n)[:, None] * R + np.arange(R - win + 1)[None, :])  # (n, B)
+    bottom = top + win
+    It, Ib = integ[top], integ[bottom]  # (n, B, C + 1)
+    return (Ib[..., win:] - Ib[..., :-win] - It[..., win:] + It[..., :-win]).astype(np.float32)
 
 
 def _parabola(m, l, r):
@@ -243,15 +272,22 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
     nb = nb.reshape(n, -1)
     d_pred = _plane_prediction(anchors, d_anchor, nb, xy)
     best = None
+    todo = np.arange(n)
     for sc in cfg.scales:
-        r = _search(left, right, xy, xy[:, 0] - d_pred, cfg.dense_radius, cfg.band, cfg.window, cfg, scale=sc)
-        r["scale"] = np.full(n, sc)
+        # other stretches only for the points the unstretched window does not match well
+        r = _search(left, right, xy[todo], xy[todo, 0] - d_pred[todo], cfg.dense_radius, cfg.band, cfg.window,
+                    cfg, scale=sc)
+        r["scale"] = np.full(len(todo), sc)
         if best is None:
             best = r
         else:
-            better = r["ncc"] > best["ncc"]
+            better = r["ncc"] > best["ncc"][todo]
             for key in best:
-                best[key] = np.where(better[:, None] if best[key].ndim == 2 else better, r[key], best[key])
+                best[key][todo[better]] = r[key][better]
+        weak = (best["ncc"] < cfg.retry_below_ncc) | best["at_edge"] | (best["second"] >= cfg.uniqueness * best["ncc"])
+        todo = np.nonzero(weak)[0]
+        if len(todo) == 0:
+            break
     r2 = best
     # left-right check: the right point matched back into the left image (inverse stretch)
     back = _search(right, left, r2["xy"], xy[:, 0], 2, 1, cfg.window, cfg, scale=1.0 / r2["scale"])
@@ -313,30 +349,46 @@ def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarra
     active = np.ones(n, bool)
     sigma = np.full(n, np.nan)
     free = [0, 1, 2, 3, 6, 7] if shift_y else [0, 1, 2, 6, 7]
+    k = len(free)
+    N_all = np.zeros((n, k, k))
+    R_all = np.zeros((n, window * window))
+    r_all = np.zeros((n, window * window))
+    running = np.arange(n)
     for _ in range(iterations):
-        x = base[:, 0, None] + ddx + p[:, 0, None] + p[:, 1, None] * ddx + p[:, 2, None] * ddy
-        y = base[:, 1, None] + ddy + p[:, 3, None] + p[:, 4, None] * ddx + p[:, 5, None] * ddy
-        Rv = sample(right, x, y).astype(float)
-        gx = sample(gx_img, x, y).astype(float) * p[:, 6, None]
-        gy = sample(gy_img, x, y).astype(float) * p[:, 6, None]
-        r = L - (p[:, 6, None] * Rv + p[:, 7, None])
-        J = np.stack([gx, gx * ddx, gx * ddy, gy, gy * ddx, gy * ddy, Rv, np.ones_like(Rv)], axis=2)[:, :, free]
-        N = np.einsum("nki,nkj->nij", J, J)
-        b = np.einsum("nki,nk->ni", J, r)
-        N = N + np.eye(len(free))[None] * 1e-9 * np.trace(N, axis1=1, axis2=2)[:, None, None]
-        try:
-            step = np.linalg.solve(N, b[..., None])[..., 0]
-        except np.linalg.LinAlgError:
+        if len(running) == 0:
             break
-        step[~active] = 0
-        p[:, free] += step
+        q, ex, ey = p[running], ddx[running], ddy[running]
+        x = base[running, 0, None] + ex + q[:, 0, None] + q[:, 1, None] * ex + q[:, 2, None] * ey
+        y = base[running, 1, None] + ey + q[:, 3, None] + q[:, 4, None] * ex + q[:, 5, None] * ey
+        Rv, gx, gy = sample_many((right, gx_img, gy_img), x, y)
+        gx *= q[:, 6, None]
+        gy *= q[:, 6, None]
+        r = L[running] - (q[:, 6, None] * Rv + q[:, 7, None])
+        cols = {0: gx, 1: gx * ex, 2: gx * ey, 3: gy, 4: gy * ex, 5: gy * ey, 6: Rv, 7: None}
+        J = np.empty(Rv.shape + (k,), np.float32)
+        for j, c in enumerate(free):
+            J[..., j] = 1.0 if c == 7 else cols[c]
+        Jt = J.transpose(0, 2, 1)
+        N = (Jt @ J).astype(float)
+        b = (Jt @ r.astype(np.float32)[..., None])[..., 0].astype(float)
+        N += np.eye(k)[None] * 1e-9 * np.trace(N, axis1=1, axis2=2)[:, None, None]
+        N_all[running], R_all[running], r_all[running] = N, Rv, r
+        ok = np.abs(np.linalg.det(N)) > 0
+        step = np.zeros((len(running), k))
+        step[ok] = np.linalg.solve(N[ok], b[ok][..., None])[..., 0]
+        p[np.ix_(running, free)] += step
         # a step larger than a pixel means the window slid off the match
-        active &= np.abs(step[:, 0]) < 1.0
-        if np.all(np.abs(step[active, 0]) < 1e-3):
-            break
+        slid = (np.abs(step[:, 0]) >= 1.0) | ~ok
+        active[running[slid]] = False
+        # points whose shift no longer changes stop iterating (the others go on)
+        moving = np.abs(step[:, 0]) >= 1e-3
+        if shift_y:
+            moving |= np.abs(step[:, free.index(3)]) >= 1e-3
+        running = running[~slid & moving]
+    N, Rv, r = N_all, R_all, r_all
     dof = window * window - len(free)
     s0 = np.sqrt(np.sum(r * r, axis=1) / dof)
-    Ninv = np.linalg.inv(N)
+    Ninv = np.linalg.inv(N + np.eye(k)[None] * 1e-12)
     sigma = s0 * np.sqrt(np.abs(Ninv[:, 0, 0]))
     Rc = Rv - Rv.mean(axis=1, keepdims=True)
     Lc = L - L.mean(axis=1, keepdims=True)

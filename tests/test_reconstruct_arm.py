@@ -93,3 +93,18 @@ def test_the_command_refuses_a_test_field_capture(torso_scenario, capsys):
                "--calibration", str(torso_scenario / "truth" / "calibration.json"), "--arm", "A",
                "--out", "/tmp/never.ply", str(torso_scenario / "captures" / "testfield-pose0")])
     assert rc == 2 and "kind is 'testfield'" in capsys.readouterr().err
+
+
+def test_a_user_drawn_region_carried_with_the_capture_limits_the_surface(torso_scenario, arm_a, tmp_path):
+    rig, cal, cap, (full, _) = arm_a
+    imgs = load_images(cap, rig)
+    w, h = 480, 320
+    left_half = [[0, 0], [w // 2, 0], [w // 2, h], [0, h]]
+    polys = {c: left_half for c in ("A1", "A2", "A3", "A4", "A5")}
+    write_capture(tmp_path / "roi", kind="torso", rig=rig.serial, captured_at=cap.captured_at, images=imgs,
+                  extra={"roi_polygons": polys})
+    surface, _ = reconstruct_arm(read_capture(tmp_path / "roi", rig), rig, cal, "A")
+    assert 0 < len(surface) < 0.8 * len(full)
+    # every point was matched from inside the polygon of the first image of its track
+    u = np.stack([cal.cameras[c].project(surface.points)[:, 0] for c in ("A1", "A2", "A3", "A4")], axis=1)
+    assert np.all(u.min(axis=1) <= w // 2 + 1)
