@@ -95,26 +95,30 @@ def vertex_normals(points: np.ndarray, faces: np.ndarray, towards: np.ndarray) -
     return n
 
 
-def off_surface(points: np.ndarray, k: int = 12, factor: float = 6.0, floor_mm: float = 0.3) -> np.ndarray:
+def off_surface(points: np.ndarray, k: int = 12, factor: float = 6.0, floor_mm: float = 0.3,
+                isolation: float = 4.0) -> np.ndarray:
     """Points (bool mask) far off the plane through their ``k`` nearest neighbours.
 
     A point intersected from two rays has no redundancy: a wrong match there
     cannot be found from its rays, only from its neighbours. The threshold is
     ``factor`` times the robust spread of all points' distances to their
-    neighbourhood planes, and at least ``floor_mm``.
+    neighbourhood planes, and at least ``floor_mm``. Points whose ``k``-th
+    neighbour is ``isolation`` times farther than usual are dropped too.
     """
     from scipy.spatial import cKDTree
 
     n = len(points)
     if n <= k:
         return np.zeros(n, bool)
-    _, nb = cKDTree(points).query(points, k=k + 1)
+    dist, nb = cKDTree(points).query(points, k=k + 1)
     q = points[nb[:, 1:]]
     centre = q.mean(axis=1)
     _, _, vt = np.linalg.svd(q - centre[:, None], full_matrices=False)
     d = np.abs(np.sum((points - centre) * vt[:, -1], axis=1))
     scale = 1.4826 * float(np.median(d))
-    return d > max(floor_mm, factor * scale)
+    # a point far from every other (a wrong match floating off the skin) has no plane to be tested against
+    isolated = dist[:, -1] > isolation * float(np.median(dist[:, -1]))
+    return (d > max(floor_mm, factor * scale)) | isolated
 
 
 def make_surface(points, cameras, data=None, max_edge_mm=None, max_slope_deg=80.0) -> PointSurface:
