@@ -201,8 +201,13 @@ def _cmd_reconstruct(args) -> int:
     rep = result["report"]
     print(f"torso: {rep['points']} points, mesh {rep['mesh']['faces']} faces, {rep['seconds']['total']:.1f} s")
     for p in rep["registration"]["pairs"]:
+        if p["average_normal_distance_mm"] is None:
+            print(f"  {p['a']}-{p['b']}: no point-patch pairs (left out)")
+            continue
         print(f"  {p['a']}-{p['b']}: average normal distance {p['average_normal_distance_mm']:.3f} mm, "
               f"{p['matched_fraction']:.0%} matched")
+    for warning in rep.get("warnings", []):
+        print(f"warning: {warning}", file=sys.stderr)
     for arm, why in rep["failed_arms"].items():
         print(f"arm {arm} not reconstructed: {why}", file=sys.stderr)
     print(f"wrote {out / 'torso.ply'}, {out / 'torso-mesh.ply'} and {out / 'report.json'}")

@@ -228,6 +228,10 @@ def reconstruct_torso(capture: Capture, rig: Rig, calibration: Calibration, cfg:
         try:
             progress("pair-wise ICPatch around the rig")
             T, pairwise = chain_initial(surfaces, order, reference, cfg.icpatch, progress=progress)
+            unplaced = [a for a in order if a not in T]
+            if unplaced:
+                raise ValueError(f"arms {', '.join(unplaced)} overlap no placed neighbour under their "
+                                 "nominal placement")
             if len(order) > 2:
                 # what the chain of pair-wise results leaves at the pair that closes the circle
                 last = order[order.index(reference) - 1]
@@ -243,10 +247,11 @@ def reconstruct_torso(capture: Capture, rig: Rig, calibration: Calibration, cfg:
     t2 = time.perf_counter()
     if not multi["converged"]:
         problems.append(f"the multiple registration did not converge in {multi['iterations']} iterations")
+    warnings = []
     for p in multi["pairs"]:
         if p["pairs"] < cfg.icpatch.min_pairs:
-            problems.append(f"arms {p['a']} and {p['b']} barely overlap: {p['pairs']} point-patch pairs "
-                            f"(at least {cfg.icpatch.min_pairs} needed)")
+            warnings.append(f"arms {p['a']} and {p['b']} barely overlap: {p['pairs']} point-patch pairs "
+                            f"(at least {cfg.icpatch.min_pairs} needed); the pair was left out of the adjustment")
         else:
             # what the two surfaces' own precision allows, and never more than the configured floor
             own = 3.0 * max(float(np.median(surfaces[p["a"]].data["sigma_mm"])),
@@ -257,6 +262,9 @@ def reconstruct_torso(capture: Capture, rig: Rig, calibration: Calibration, cfg:
                                 f"{p['average_normal_distance_mm']:.2f} mm > {limit:.2f} mm")
     for problem in problems:
         progress(f"registration problem: {problem}")
+    for warning in warnings:
+        progress(f"registration warning: {warning}")
+    order = [a for a in order if a in T]
     pts = np.concatenate([T[a].apply(surfaces[a].points) for a in order])
     nrm = np.concatenate([T[a].rotate(surfaces[a].normals) for a in order])
     sig = np.concatenate([surfaces[a].data["sigma_mm"] * T[a].scale for a in order])
@@ -273,6 +281,7 @@ def reconstruct_torso(capture: Capture, rig: Rig, calibration: Calibration, cfg:
         # failed: the registration is not trustworthy; partial: registered, but arms are missing
         "status": "failed" if problems else ("partial" if failed else "ok"),
         "problems": problems + [f"arm {a} not reconstructed: {why}" for a, why in failed.items()],
+        "warnings": warnings,
         "registration": {
             "pairs": multi["pairs"],
             "pairwise": pairwise,

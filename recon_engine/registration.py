@@ -193,23 +193,44 @@ def _subsample(n: int, max_points: int, seed: int = 0) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(n, max_points, replace=False))
 
 
+def neighbour_pairs(order: list) -> list:
+    """Neighbouring arms around the rig's circle, the closing pair included."""
+    if len(order) < 2:
+        return []
+    if len(order) == 2:
+        return [(order[1], order[0])]
+    return [(order[i], order[(i + 1) % len(order)]) for i in range(len(order))]
+
+
 def chain_initial(surfaces: dict, order: list, reference: str, cfg: ICPatchConfig | None = None,
                   initial: dict | None = None, progress=lambda msg: None) -> tuple[dict, list]:
-    """Initial transforms from pair-wise ICPatch along the circle from the reference arm.
+    """Initial transforms from pair-wise ICPatch, outward from the reference arm.
 
-    Each arm is registered to its predecessor (already placed), starting from
-    ``initial`` (default: identity, the arms' nominal placement from the
-    calibration). Returns ``(transforms, pairwise results)``.
+    Arms are placed one by one along the neighbouring pairs that overlap most
+    under their nominal placement (``initial``, default identity: where the
+    calibration put them), each registered to an already placed neighbour: a
+    pair that barely overlaps is not needed to place every arm. Returns
+    ``(transforms, pairwise results)``; arms no pair can reach are left out.
     """
-    i0 = order.index(reference)
-    seq = order[i0:] + order[:i0]
+    cfg = cfg or ICPatchConfig()
+    start = {a: (initial or {}).get(a, Transform.identity()) for a in order}
+    index = {a: PatchIndex(surfaces[a]) for a in order}
+    overlap = {}
+    for a, b in neighbour_pairs(order):
+        for m, f in ((a, b), (b, a)):
+            rel = start[f].inverse().compose(start[m])
+            overlap[(m, f)] = len(correspondences(surfaces[m].points, surfaces[m].normals, index[f], rel,
+                                                  cfg.initial_distance_mm, cfg)[0])
     T = {reference: Transform.identity()}
     results = []
-    for prev, arm in zip(seq[:-1], seq[1:]):
-        start = (initial or {}).get(arm, T[prev])
-        # register in the predecessor's frame, then carry into the reference frame
-        local = T[prev].inverse().compose(start)
-        res = icpatch(surfaces[arm], surfaces[prev], local, cfg)
+    while True:
+        # the best-overlapping pair from a placed arm to an unplaced one (a maximum spanning tree)
+        cand = [(n, m, f) for (m, f), n in overlap.items() if f in T and m not in T and n >= 7]
+        if not cand:
+            break
+        n, arm, prev = max(cand)
+        local = start[prev].inverse().compose(start[arm])  # the nominal placement, in prev's frame
+        res = icpatch(surfaces[arm], surfaces[prev], local, cfg, index=index[prev])
         T[arm] = T[prev].compose(res["transform"])
         results.append({"a": arm, "b": prev, **{k: v for k, v in res.items() if k != "transform"}})
         progress(f"ICPatch {arm} to {prev}: {res['average_normal_distance_mm']:.3f} mm, "
@@ -235,7 +256,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
     free = [a for a in arms if a != reference]
     col = {a: 7 * i for i, a in enumerate(free)}
     n_par = 7 * len(free)
-    pairs = [(arms[i], arms[(i + 1) % len(arms)]) for i in range(len(arms))] if len(arms) > 2 else [(arms[1], arms[0])]
+    pairs = neighbour_pairs(arms)
     if cfg.symmetric:
         # both directions of every pair: a surface's points lie off the other's chords (the patches) by
         # the curvature's sagitta, the same way in both directions, so the two bias the solution oppositely
@@ -251,6 +272,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
     converged = False
     it = 0
     frozen = {}
+    weak = set()
     scale_weight = 0.0 if cfg.estimate_scale else 1e12
     for it in range(1, cfg.max_iterations + 1):
         N = np.zeros((n_par, n_par))
@@ -266,6 +288,12 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             # after a few iterations the pairs are kept, so the adjustment converges instead of
             # jittering as points at the acceptance limit come and go
             idx, n_loc, p0_loc, _ = frozen[(a, b)]
+            if len(idx) < cfg.min_pairs:
+                # a pair that barely overlaps says nothing reliable: it is left out (and reported)
+                weak.add((a, b))
+                stats[(a, b)] = (np.zeros(0), 0, len(idx_all))
+                continue
+            weak.discard((a, b))
             d_loc = np.sum((rel.apply(X[idx]) - p0_loc) * n_loc, axis=1)
             x = T[a].apply(X[idx])
             n = T[b].rotate(n_loc)
@@ -328,9 +356,12 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
                           "overlap_fraction": float(over / max(n_all, 1)),
                           "overlap_matched_fraction": float(matched_in_overlap / over) if over else 0.0,
                           "pairs": int(k), "acceptance_distance_mm": float(dist[(a, b)])})
-        progress(f"multiple registration {a}-{b}: {pair_rows[-1]['average_normal_distance_mm']:.3f} mm")
+        if k:
+            progress(f"multiple registration {a}-{b}: {pair_rows[-1]['average_normal_distance_mm']:.3f} mm")
+        else:
+            progress(f"multiple registration {a}-{b}: left out, the surfaces barely overlap")
     return {"transforms": T, "sigmas": sig, "pairs": pair_rows, "iterations": it, "converged": converged,
-            "sigma0_mm": s0}
+            "sigma0_mm": s0, "left_out": sorted(f"{a}-{b}" for a, b in weak)}
 
 
 def pair_fit(moving: PointSurface, fixed: PointSurface, T_moving: Transform, T_fixed: Transform,

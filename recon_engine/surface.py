@@ -96,7 +96,7 @@ def vertex_normals(points: np.ndarray, faces: np.ndarray, towards: np.ndarray) -
 
 
 def off_surface(points: np.ndarray, k: int = 12, factor: float = 6.0, floor_mm: float = 0.3,
-                isolation: float = 4.0) -> np.ndarray:
+                isolation: float = 8.0) -> np.ndarray:
     """Points (bool mask) far off the plane through their ``k`` nearest neighbours.
 
     A point intersected from two rays has no redundancy: a wrong match there
