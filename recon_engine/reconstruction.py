@@ -22,7 +22,7 @@ from .features import local_contrast
 from .formats import Calibration, Capture, FormatError, Rig, load_image
 from .multiview import IntersectionConfig, intersect
 from .registration import ICPatchConfig, Transform, chain_initial, multi_surface_registration, pair_fit
-from .surface import PointSurface, make_surface, off_surface
+from .surface import PointSurface, make_surface, off_surface, small_components
 from .tracking import TrackingConfig, track_images
 
 ROI_KEY = "roi_polygons"  # capture.json: {"A1": [[x, y], ...]} user-drawn regions (px)
@@ -32,6 +32,7 @@ ROI_KEY = "roi_polygons"  # capture.json: {"A1": [[x, y], ...]} user-drawn regio
 class ReconstructionConfig:
     subject_radius_mm: float = 400.0  # the subject lies within this of the rig centre (sets the disparity range)
     max_sigma_mm: float = 1.0  # points less precise than this (1-sigma, largest axis) are dropped
+    min_island_points: int = 10  # connected pieces of the surface with fewer points are dropped
     min_contrast: float = 3.0  # grey levels: an image with less standard deviation is blank
     max_saturated: float = 0.2  # fraction of pixels at 255 above which an image is overexposed
     min_sharpness: float = 0.25  # high-frequency share of the pattern's contrast; below it, out of focus
@@ -137,6 +138,12 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     # wrong matches of two-ray points show only against their neighbours
     stray = off_surface(res["X"][keep])
     reason[np.nonzero(keep)[0][stray]] = "off the local surface"
+    keep = reason == ""
+    # islands: wrong matches that agree with each other, cut off from the skin by the TIN's edge rules
+    kept = np.nonzero(keep)[0]
+    faces = make_surface(res["X"][kept], cams).faces
+    island = small_components(len(kept), faces, cfg.min_island_points)
+    reason[kept[island]] = "island off the surface"
     keep = reason == ""
     t3 = time.perf_counter()
     surface = make_surface(res["X"][keep], cams, data={"sigma_mm": sigma[keep].astype(np.float32),

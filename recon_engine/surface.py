@@ -121,6 +121,27 @@ def off_surface(points: np.ndarray, k: int = 12, factor: float = 6.0, floor_mm: 
     return (d > max(floor_mm, factor * scale)) | isolated
 
 
+def small_components(n_points: int, faces: np.ndarray, min_points: int) -> np.ndarray:
+    """Points (bool mask) in patches of the TIN that hold fewer than ``min_points`` points.
+
+    Wrong matches that agree with each other form small islands, cut off from
+    the skin once long and steep edges are removed; points in no patch at all
+    count as islands of one.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    if n_points == 0:
+        return np.zeros(0, bool)
+    f = np.asarray(faces, dtype=np.int64)
+    rows = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
+    cols = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_points, n_points))
+    _, label = connected_components(graph, directed=False)
+    size = np.bincount(label)
+    return size[label] < min_points
+
+
 def make_surface(points, cameras, data=None, max_edge_mm=None, max_slope_deg=80.0) -> PointSurface:
     """The TIN surface of an arm's points seen by ``cameras``."""
     points = np.asarray(points, dtype=float)
