@@ -151,7 +151,6 @@ def _jacobian(pb: Problem, cams, poses, points, free_cam, free_pose):
             rows.append(2 * obs_rows + a)
             cols.append(cam_cols[pb.cam, j])
             vals.append(d[:, a])
-    P = len(poses)
     n_pose_free = int(free_pose.sum())  # poses 1.. are free
     base_pose = n_cam_total
     for j in range(6):

@@ -316,7 +316,6 @@ def calibrate(captures: list[Capture], rig: Rig, testfield: TestField, cfg: Cali
             initial_values(targets, rig, testfield, report, cfg, cameras=cameras)
             _keep_calibratable(targets, cameras, rig, report, cfg)
     # figures
-    res = np.linalg.norm(sol.residuals, axis=1)
     for i, cam_id in enumerate(cam_ids):
         sel = (pb.cam == i) & sol.inlier
         report.residual_rms_px[cam_id] = float(np.sqrt(np.mean(sol.residuals[sel] ** 2))) if sel.any() else None

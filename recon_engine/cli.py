@@ -147,10 +147,9 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _cmd_reconstruct_arm(args) -> int:
-    from .formats import read_calibration, read_capture, read_rig, write_json
-    from .reconstruction import reconstruct_arm
-    from .surface import write_ply
+def _torso_inputs(args):
+    """Rig, calibration and torso capture of a reconstruction command, checked against each other."""
+    from .formats import read_calibration, read_capture, read_rig
 
     rig = read_rig(args.rig)
     calibration = read_calibration(args.calibration)
@@ -159,6 +158,15 @@ def _cmd_reconstruct_arm(args) -> int:
     capture = read_capture(args.capture, rig)
     if capture.kind != "torso":
         raise FormatError(capture.source, f"kind is {capture.kind!r}: reconstruction needs a 'torso' capture")
+    return rig, calibration, capture
+
+
+def _cmd_reconstruct_arm(args) -> int:
+    from .formats import write_json
+    from .reconstruction import reconstruct_arm
+    from .surface import write_ply
+
+    rig, calibration, capture = _torso_inputs(args)
     surface, report = reconstruct_arm(capture, rig, calibration, args.arm, progress=lambda m: print(f"  {m}", flush=True))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -175,17 +183,11 @@ def _cmd_reconstruct_arm(args) -> int:
 
 
 def _cmd_reconstruct(args) -> int:
-    from .formats import read_calibration, read_capture, read_rig, write_json
+    from .formats import write_json
     from .reconstruction import reconstruct_torso
     from .surface import write_ply
 
-    rig = read_rig(args.rig)
-    calibration = read_calibration(args.calibration)
-    if calibration.rig != rig.serial:
-        raise FormatError(args.calibration, f"rig is {calibration.rig!r}, but rig.json is {rig.serial!r}")
-    capture = read_capture(args.capture, rig)
-    if capture.kind != "torso":
-        raise FormatError(capture.source, f"kind is {capture.kind!r}: reconstruction needs a 'torso' capture")
+    rig, calibration, capture = _torso_inputs(args)
     out = Path(args.out)
     if out.exists() and any(out.iterdir()) and not args.force:
         raise FileExistsError(f"{out}: already exists and is not empty (use --force to replace its files)")

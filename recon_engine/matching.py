@@ -56,23 +56,15 @@ class MatchingConfig:
 
 def sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Exact bilinear samples (float32) of ``image`` at float positions; 0 outside."""
-    img = image if image.dtype == np.float32 else image.astype(np.float32)
-    h, w = img.shape
-    x0 = np.floor(x).astype(np.int64)
-    y0 = np.floor(y).astype(np.int64)
-    fx = (x - x0).astype(np.float32)
-    fy = (y - y0).astype(np.float32)
-    inside = (x0 >= 0) & (y0 >= 0) & (x0 < w - 1) & (y0 < h - 1)
-    x0 = np.clip(x0, 0, w - 2)
-    y0 = np.clip(y0, 0, h - 2)
-    flat = img.ravel()
-    i = y0 * w + x0
-    v = (flat[i] * (1 - fx) + flat[i + 1] * fx) * (1 - fy) + (flat[i + w] * (1 - fx) + flat[i + w + 1] * fx) * fy
-    return np.where(inside, v, 0).astype(np.float32)
+    return sample_many((image,), np.asarray(x, dtype=float), np.asarray(y, dtype=float))[0]
 
 
 def sample_many(images, x: np.ndarray, y: np.ndarray) -> list:
-    """``sample`` of several same-sized images at the same positions (float64), weights computed once."""
+    """Bilinear samples (float32) of several same-sized images at the same positions; 0 outside.
+
+    The weights are computed once for all images (OpenCV's remap would step
+    positions by 1/32 px, too coarse for least-squares matching).
+    """
     h, w = images[0].shape
     x0 = np.floor(x).astype(np.int64)
     y0 = np.floor(y).astype(np.int64)

@@ -22,7 +22,7 @@ from .features import local_contrast
 from .formats import Calibration, Capture, FormatError, Rig, load_image
 from .multiview import IntersectionConfig, intersect
 from .registration import ICPatchConfig, Transform, chain_initial, multi_surface_registration, pair_fit
-from .surface import PointSurface, make_surface, off_surface, small_components
+from .surface import PointSurface, make_surface, off_surface, small_components, subset
 from .tracking import TrackingConfig, track_images
 
 ROI_KEY = "roi_polygons"  # capture.json: {"A1": [[x, y], ...]} user-drawn regions (px)
@@ -139,15 +139,16 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     stray = off_surface(res["X"][keep])
     reason[np.nonzero(keep)[0][stray]] = "off the local surface"
     keep = reason == ""
-    # islands: wrong matches that agree with each other, cut off from the skin by the TIN's edge rules
-    kept = np.nonzero(keep)[0]
-    faces = make_surface(res["X"][kept], cams).faces
-    island = small_components(len(kept), faces, cfg.min_island_points)
-    reason[kept[island]] = "island off the surface"
-    keep = reason == ""
     t3 = time.perf_counter()
     surface = make_surface(res["X"][keep], cams, data={"sigma_mm": sigma[keep].astype(np.float32),
                                                        "rays": res["rays"][keep].astype(np.int32)})
+    # islands: wrong matches that agree with each other, cut off from the skin by the TIN's edge rules;
+    # they share no patch with the rest, so dropping them leaves the other points' patches and normals as they are
+    kept = np.nonzero(keep)[0]
+    island = small_components(len(kept), surface.faces, cfg.min_island_points)
+    reason[kept[island]] = "island off the surface"
+    keep = reason == ""
+    surface = subset(surface, ~island)
     t4 = time.perf_counter()
     dropped = {}
     for r in reason[~keep]:

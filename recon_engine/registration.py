@@ -279,7 +279,6 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
               for k, (a, b) in enumerate(pairs)}
     T = {a: initial.get(a, Transform.identity()) for a in arms}
     T[reference] = Transform.identity()
-    dist = {p: cfg.min_distance_mm * 4 for p in pairs}
     # start from the pair-wise solution: its acceptance distances are already tight
     dist = {p: max(cfg.min_distance_mm, 2.0) for p in pairs}
     converged = False

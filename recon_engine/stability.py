@@ -101,8 +101,6 @@ def null_spread(a: Camera, b: Camera, cov_a, cov_b, distance_mm: float = 2500.0)
     resection (SPR) would absorb is projected out first.
     """
     grid = _grid(a)
-    xy = pixel_to_normalized(a, grid)
-    rays = np.column_stack([xy, np.ones(len(xy))])
     n = len(grid)
 
     def offsets(va, vb, pose=np.zeros(6), plane=False):

@@ -142,6 +142,15 @@ def small_components(n_points: int, faces: np.ndarray, min_points: int) -> np.nd
     return size[label] < min_points
 
 
+def subset(surface: PointSurface, keep: np.ndarray) -> PointSurface:
+    """The points where ``keep`` is true, with the patches whose three vertices are all kept."""
+    keep = np.asarray(keep, dtype=bool)
+    new_index = np.cumsum(keep) - 1
+    faces = surface.faces[keep[surface.faces].all(axis=1)]
+    return PointSurface(surface.points[keep], surface.normals[keep], new_index[faces],
+                        {k: np.asarray(v)[keep] for k, v in surface.data.items()}, surface.view_direction)
+
+
 def make_surface(points, cameras, data=None, max_edge_mm=None, max_slope_deg=80.0) -> PointSurface:
     """The TIN surface of an arm's points seen by ``cameras``."""
     points = np.asarray(points, dtype=float)

@@ -1,7 +1,5 @@
 """Shared fixtures: simulated tiny installations, generated once per test session."""
 
-from dataclasses import replace
-
 import pytest
 
 from recon_engine.simulator.config import preset

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from recon_engine.camera import Camera, opk_to_rotation
+from recon_engine.camera import Camera
 from recon_engine.multiview import intersect
 
 

@@ -54,7 +54,7 @@ def test_unusable_and_missing_images_are_named_and_the_arm_still_reconstructed(t
     imgs = {c: im for c, im in load_images(cap, rig).items() if c != "A5"}  # A5 failed
     imgs["A1"] = np.full_like(imgs["A1"], 7)  # blank
     imgs["A4"] = cv2.GaussianBlur(imgs["A4"], (0, 0), 3)  # out of focus
-    bad = write_capture(tmp_path / "bad", kind="torso", rig=rig.serial, captured_at=cap.captured_at, images=imgs)
+    write_capture(tmp_path / "bad", kind="torso", rig=rig.serial, captured_at=cap.captured_at, images=imgs)
     surface, report = reconstruct_arm(read_capture(tmp_path / "bad", rig), rig, cal, "A")
     u = report["unusable_images"]
     assert u["A5"] == "missing from the capture"

@@ -25,12 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import Camera
 from ..formats import Calibration, write_calibration, write_capture, write_json, write_rig, write_testfield
-from .bodies import Body, Posture, curve_profiles, load_body, pose_body, skin_albedo
+from .bodies import Posture, curve_profiles, load_body, pose_body, skin_albedo
 from .config import ScenarioConfig
 from .render import Lighting, PreparedLighting, Scene, Surface, render
-from .rig import RigTruth, apply_lens_changes, displace, draw_arm_displacements, make_rig, rotation_about
+from .rig import apply_lens_changes, displace, draw_arm_displacements, make_rig, rotation_about
 from .testfield import Tower, draw_poses, make_tower, surveyed
 
 CAPTURED_AT = "2026-11-22T09:00:00+00:00"
