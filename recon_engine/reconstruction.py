@@ -227,7 +227,25 @@ def reconstruct_torso(capture: Capture, rig: Rig, calibration: Calibration, cfg:
             progress(f"arm {arm} not reconstructed: {exc}")
     if reference not in surfaces:
         raise ValueError(f"the reference arm {reference} could not be reconstructed: {failed.get(reference)}")
-    order = [a for a in order if a in surfaces]
+    arms_seconds = time.perf_counter() - t0
+    return register_arms(surfaces, arm_reports, failed, rig, calibration, cfg, progress, arms_seconds=arms_seconds)
+
+
+def register_arms(surfaces: dict, arm_reports: dict, failed: dict, rig: Rig, calibration: Calibration,
+                  cfg: TorsoConfig | None = None, progress=lambda msg: None, arms_seconds: float = 0.0) -> dict:
+    """Arm surfaces (each in the calibration frame, mm) registered by ICPatch, fused and meshed.
+
+    The second half of :func:`reconstruct_torso`, on its own so that the arms
+    can be reconstructed elsewhere (e.g. in parallel jobs). ``surfaces`` maps
+    arm id to :class:`PointSurface`, ``arm_reports`` to its report and
+    ``failed`` to why an arm could not be reconstructed.
+    """
+    cfg = cfg or TorsoConfig()
+    reference = rig.reference_arm.id
+    if reference not in surfaces:
+        raise ValueError(f"the reference arm {reference} could not be reconstructed: {failed.get(reference)}")
+    order = [a.id for a in rig.arms if a.id in surfaces]
+    t0 = time.perf_counter() - arms_seconds
     t1 = time.perf_counter()
     T, pairwise, closing = ({reference: Transform.identity()}, [], None)
     multi = {"transforms": T, "pairs": [], "sigmas": {}, "iterations": 0, "converged": True}
