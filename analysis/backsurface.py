@@ -1,0 +1,132 @@
+"""The back as a depth map, its horizontal profiles and the line of symmetry.
+
+Rasterstereography's view of the back: in the patient frame, the posterior
+coordinate ``y`` of the back's skin over a regular grid of ``x`` (left) and
+``z`` (up), smoothed. A horizontal section is one row of the map.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+from .config import IndicesConfig
+
+
+@dataclass
+class DepthMap:
+    """``depth[i, j]``: posterior coordinate (mm) of the back at ``z[i]``, ``x[j]`` (patient frame); NaN: no skin."""
+
+    x: np.ndarray
+    z: np.ndarray
+    depth: np.ndarray
+
+    def row(self, zq: float) -> np.ndarray:
+        """The section at height ``zq`` (linear between rows)."""
+        i = np.interp(zq, self.z, np.arange(len(self.z)))
+        i0 = int(np.clip(np.floor(i), 0, len(self.z) - 1))
+        i1 = min(i0 + 1, len(self.z) - 1)
+        f = i - i0
+        return (1 - f) * self.depth[i0] + f * self.depth[i1]
+
+    def at(self, xq, zq) -> float:
+        return float(np.interp(xq, self.x, self.row(zq), left=np.nan, right=np.nan))
+
+
+def back_points(P: np.ndarray, N: np.ndarray, cfg: IndicesConfig) -> np.ndarray:
+    """Mask of the points (patient frame) on the back: normal within ``back_normal_deg`` of posterior."""
+    return N[:, 1] >= np.cos(np.radians(cfg.back_normal_deg))
+
+
+def depth_map(P: np.ndarray, N: np.ndarray, cfg: IndicesConfig, half_width_mm: float = 220.0) -> DepthMap:
+    """The back's depth map from points ``P`` and outward normals ``N`` in the patient frame.
+
+    Cell value: the mean posterior coordinate of the back points in it, then a
+    normalized Gaussian smoothing of ``cfg.smooth_mm`` (fills small holes);
+    cells far from any point stay NaN.
+    """
+    g = cfg.grid_mm
+    B = P[back_points(P, N, cfg)]
+    xs = np.arange(-half_width_mm, half_width_mm + g / 2, g)
+    zs = np.arange(np.floor(B[:, 2].min() / g) * g, B[:, 2].max() + g, g)
+    ix = np.round((B[:, 0] - xs[0]) / g).astype(int)
+    iz = np.round((B[:, 2] - zs[0]) / g).astype(int)
+    ok = (ix >= 0) & (ix < len(xs)) & (iz >= 0) & (iz < len(zs))
+    # keep the most posterior layer only: an arm in front of nothing is fine, skin behind skin is not the back
+    s = np.zeros((len(zs), len(xs)))
+    c = np.zeros_like(s)
+    np.add.at(s, (iz[ok], ix[ok]), B[ok, 1])
+    np.add.at(c, (iz[ok], ix[ok]), 1.0)
+    sigma = cfg.smooth_mm / g
+    ss = gaussian_filter(s, sigma, mode="constant")
+    cs = gaussian_filter(c, sigma, mode="constant")
+    support = gaussian_filter((c > 0).astype(float), sigma, mode="constant")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        depth = np.where(support > 0.35, ss / cs, np.nan)
+    return DepthMap(xs, zs, depth)
+
+
+def symmetry_point(x: np.ndarray, profile: np.ndarray, centre: float, cfg: IndicesConfig) -> tuple[float, float]:
+    """Where a horizontal profile is most nearly mirror-symmetric, near ``centre`` (mm); and the misfit (mm RMS).
+
+    For a candidate ``x0`` the profile's right half is compared with its left
+    half mirrored, after removing a linear tilt (a rotated symmetric profile is,
+    to first order, symmetric plus a tilt): residual of
+    ``d(x0+u) - d(x0-u) = 2·a·u`` for ``0 < u <= symmetry_window_mm``.
+    """
+    u = np.arange(cfg.grid_mm, cfg.symmetry_window_mm + 1e-9, cfg.grid_mm)
+    cands = np.arange(centre - cfg.symmetry_search_mm, centre + cfg.symmetry_search_mm + 1e-9, 1.0)
+    good = np.isfinite(profile)
+    if good.sum() < 10:
+        return np.nan, np.nan
+    xp, dp = x[good], profile[good]
+    cost = np.full(len(cands), np.inf)
+    for k, x0 in enumerate(cands):
+        a = np.interp(x0 + u, xp, dp, left=np.nan, right=np.nan)
+        b = np.interp(x0 - u, xp, dp, left=np.nan, right=np.nan)
+        diff = a - b
+        ok = np.isfinite(diff)
+        if ok.sum() < 0.8 * len(u):
+            continue
+        uu, dd = u[ok], diff[ok]
+        slope = np.sum(dd * uu) / np.sum(uu * uu)
+        cost[k] = np.sqrt(np.mean((dd - slope * uu) ** 2))
+    k = int(np.argmin(cost))
+    if not np.isfinite(cost[k]):
+        return np.nan, np.nan
+    x0 = cands[k]
+    if 0 < k < len(cands) - 1 and np.isfinite(cost[k - 1]) and np.isfinite(cost[k + 1]):
+        c0, c1, c2 = cost[k - 1], cost[k], cost[k + 1]
+        den = c0 - 2 * c1 + c2
+        if den > 0:
+            x0 += 0.5 * (c0 - c2) / den
+    return float(x0), float(cost[k])
+
+
+def slope_at(x: np.ndarray, profile: np.ndarray, x0: float, half_width: float) -> float:
+    """Least-squares slope d(depth)/dx of the profile over ``x0 ± half_width`` (mm/mm)."""
+    sel = (np.abs(x - x0) <= half_width) & np.isfinite(profile)
+    if sel.sum() < 3:
+        return np.nan
+    xx = x[sel] - x0
+    yy = profile[sel]
+    A = np.column_stack([xx, np.ones_like(xx)])
+    return float(np.linalg.lstsq(A, yy, rcond=None)[0][0])
+
+
+def central_extent(xs: np.ndarray, gap_mm: float, around: float = 0.0) -> tuple[float, float]:
+    """The run of sorted coordinates ``xs`` without gaps wider than ``gap_mm`` that holds ``around`` (or is nearest)."""
+    if len(xs) == 0:
+        return np.nan, np.nan
+    s = np.sort(xs)
+    breaks = np.nonzero(np.diff(s) > gap_mm)[0]
+    starts = np.concatenate([[0], breaks + 1])
+    ends = np.concatenate([breaks, [len(s) - 1]])
+    best, best_d = 0, np.inf
+    for k, (a, b) in enumerate(zip(starts, ends)):
+        d = 0.0 if s[a] <= around <= s[b] else min(abs(s[a] - around), abs(s[b] - around))
+        if d < best_d:
+            best, best_d = k, d
+    return float(s[starts[best]]), float(s[ends[best]])

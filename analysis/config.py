@@ -1,0 +1,71 @@
+"""Parameters of the analysis stages, with commented defaults.
+
+Lengths in mm, angles in degrees unless a name says otherwise. One frozen
+dataclass per stage, gathered in :class:`AnalysisConfig`; every public
+function takes an optional config and falls back to these defaults.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class SurfaceConfig:
+    normal_neighbours: int = 12  # points in the local plane that gives a point's normal
+    plane_neighbours: int = 6  # earlier-surface points whose mean plane a later point is measured against
+    max_points: int = 250_000  # larger clouds are thinned (random, seeded) before any analysis
+    seed: int = 0  # thinning and subsampling are repeatable
+
+
+@dataclass(frozen=True)
+class RigidConfig:
+    """Robust rigid point-to-plane registration (no scale)."""
+
+    initial_distance_mm: float = 40.0  # pairs farther apart are not used at the start (visit placement ~20 mm, 5 deg)
+    min_distance_mm: float = 1.0  # the acceptance distance never tightens below this
+    tighten_k: float = 3.0  # acceptance: k times the robust scale of the last iteration (outliers: changed regions)
+    tukey_c: float = 4.685  # Tukey biweight constant, in robust standard deviations
+    min_scale_mm: float = 0.05  # floor of the robust scale (about the noise of a reconstructed point)
+    max_tangential: float = 3.0  # a pair whose point lies beyond this many point spacings off its plane's
+    # footprint is over a hole or past the surface's edge: not a pair
+    max_normal_angle_deg: float = 45.0  # point and plane normals further apart are not a pair
+    max_iterations: int = 60
+    tol_rotation_deg: float = 1e-4
+    tol_translation_mm: float = 1e-3
+    sample: int = 20_000  # moving points used in the adjustment (all are used for the final figures)
+
+
+@dataclass(frozen=True)
+class CompareConfig:
+    match_distance_mm: float = 3.0  # a later point this close (normal distance) to the earlier surface is matched
+    map_distance_mm: float = 30.0  # beyond this, a point gets no deformation value (NaN): not the same skin
+    region_bounds: tuple = (1 / 3, 2 / 3)  # upper/middle/lower back split, as fractions sacral point -> VP
+
+
+@dataclass(frozen=True)
+class IndicesConfig:
+    facing: str | None = None  # posterior direction in the rig frame, e.g. "+y"; None: detected from the shape
+    grid_mm: float = 2.0  # cell of the back's depth map (across and up)
+    back_normal_deg: float = 80.0  # points whose outward normal is within this of the posterior direction: the back
+    gap_mm: float = 15.0  # a horizontal gap this wide separates the trunk from a hanging arm
+    neck_width_ratio: float = 0.5  # VP: the level where the trunk narrows below this fraction of the shoulders
+    section_step: float = 0.025  # spacing of the horizontal sections, as a fraction of the VP-SP distance
+    end_margin: float = 0.05  # sections this close to VP or SP (fraction) are left out: landmarks' own shapes
+    symmetry_search_mm: float = 50.0  # the symmetry point is searched this far either side of the VP-SP line
+    symmetry_window_mm: float = 40.0  # half width of the profile compared with its mirror image
+    rotation_window_mm: float = 12.0  # half width over which the surface normal at the symmetry line is averaged
+    smooth_mm: float = 6.0  # Gaussian smoothing (sigma) of the depth map before profiles are read
+    spine_depth_mm: float = 45.0  # skin to vertebral body centre at the symmetry line (adolescent, thoracic):
+    # the spine midline is the symmetry line moved by this depth times the sine of the surface rotation
+    hump_range_mm: tuple = (20.0, 100.0)  # distances from the symmetry line where the hump is measured
+    mirror_band: float = 0.0  # asymmetry: trunk between SP and VP, extended by this fraction either end
+    regions: tuple = (("lumbar", 0.0, 0.4), ("thoracolumbar", 0.4, 0.6), ("thoracic", 0.6, 1.0))  # SP=0, VP=1
+
+
+@dataclass(frozen=True)
+class AnalysisConfig:
+    surface: SurfaceConfig = field(default_factory=SurfaceConfig)
+    rigid: RigidConfig = field(default_factory=RigidConfig)
+    compare: CompareConfig = field(default_factory=CompareConfig)
+    indices: IndicesConfig = field(default_factory=IndicesConfig)

@@ -1,0 +1,222 @@
+"""Clinical surface indices of one torso, in the style of rasterstereography (Formetric) and ISIS.
+
+Pipeline (all in the patient frame of :mod:`analysis.frame`):
+
+1. posterior direction detected (or given), mid-sagittal plane from registering
+   the torso to its own mirror image: the patient frame;
+2. the back's depth map (:mod:`analysis.backsurface`);
+3. VP and SP (:mod:`analysis.landmarks`), or the clinician's corrections;
+4. horizontal sections between them; in each, the symmetry point (the line of
+   symmetry), the surface rotation there, the spine midline estimate, the hump;
+5. summaries per region and overall, trunk imbalance, whole-torso asymmetry.
+
+Signs: lateral values positive towards the patient's right; surface rotation
+positive when the back's right side comes backwards (the vertebral bodies
+turned to the right, a right rib hump); hump positive when the right side is
+higher (more posterior).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .backsurface import DepthMap, back_points, central_extent, depth_map, slope_at, symmetry_point
+from .config import AnalysisConfig, IndicesConfig, RigidConfig
+from .frame import PatientFrame, detect_posterior, frame_from_posterior, symmetry_plane
+from .landmarks import detect_landmarks, midline_profile
+from .torso import PlaneIndex, Torso
+
+FORMAT = "torso-indices/1"
+LANDMARKS = ("vertebra_prominens", "sacral_point")
+
+
+@dataclass
+class TorsoAnalysis:
+    """What :func:`analyse_torso` found: the report plus what pictures and comparisons need."""
+
+    report: dict
+    frame: PatientFrame
+    depth_map: DepthMap
+    landmarks: dict  # name -> rig-frame point (mm)
+    asymmetry_mm: np.ndarray  # (N,) per torso point, NaN outside the trunk or off the mirror image
+    sections: list = field(default_factory=list)
+
+
+def signed_max(v) -> float:
+    """The value of largest magnitude, with its sign (NaN-safe)."""
+    v = np.asarray(v, float)
+    v = v[np.isfinite(v)]
+    return float(v[np.argmax(np.abs(v))]) if len(v) else float("nan")
+
+
+def rms(v) -> float:
+    v = np.asarray(v, float)
+    v = v[np.isfinite(v)]
+    return float(np.sqrt(np.mean(v ** 2))) if len(v) else float("nan")
+
+
+def _summary(sections, key):
+    vals = [s[key] for s in sections]
+    return {"rms": rms(vals), "max": signed_max(vals)}
+
+
+def trunk_mask(P: np.ndarray, z_lo: float, z_hi: float, cfg: IndicesConfig, step_mm: float = 4.0) -> np.ndarray:
+    """Points (patient frame) of the trunk between two heights, arms cut off at the gaps beside the trunk."""
+    mask = np.zeros(len(P), bool)
+    band = (P[:, 2] >= z_lo) & (P[:, 2] <= z_hi)
+    idx = np.floor((P[:, 2] - z_lo) / step_mm).astype(int)
+    for k in np.unique(idx[band]):
+        sel = np.nonzero(band & (idx == k))[0]
+        a, b = central_extent(P[sel, 0], cfg.gap_mm, 0.0)
+        mask[sel[(P[sel, 0] >= a) & (P[sel, 0] <= b)]] = True
+    return mask
+
+
+def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: dict | None = None) -> TorsoAnalysis:
+    """Indices of one torso (rig frame, +Z up) with the frame, depth map, landmarks and asymmetry map.
+
+    ``landmarks``: optional clinician corrections, ``{"vertebra_prominens": [x, y, z],
+    "sacral_point": [x, y, z]}`` in the torso's (rig) frame, mm; either may be left out.
+    """
+    cfg = cfg or AnalysisConfig()
+    ic = cfg.indices
+    from .torso import point_spacing
+
+    spacing = point_spacing(torso.points)
+    if ic.smooth_mm < 1.5 * spacing or ic.grid_mm < 1.0 * spacing:
+        # a sparse cloud (a reduced rig): cells and smoothing grow with the point spacing
+        ic = replace(ic, grid_mm=max(ic.grid_mm, 1.0 * spacing), smooth_mm=max(ic.smooth_mm, 1.5 * spacing))
+    post, facing = detect_posterior(torso.points, ic.facing)
+    c = np.median(torso.points, axis=0)
+    frame0 = frame_from_posterior(post, [c[0], c[1], 0.0])
+    rc = RigidConfig(initial_distance_mm=60.0, min_distance_mm=3.0, sample=8000)
+    index = PlaneIndex(torso)
+    # the mid-sagittal plane of the whole torso sets the yaw and the origin across
+    try:
+        sym = symmetry_plane(torso, frame0, rc, index=index)
+        frame = sym["frame"]
+        if abs(np.degrees(np.arccos(np.clip(frame.R[1] @ frame0.R[1], -1, 1)))) > 20:
+            frame = frame0
+    except ValueError:
+        frame = frame0
+    frame.origin[2] = 0.0
+    P, N = frame.to_patient(torso.points), frame.rotate(torso.normals)
+    dmap = depth_map(P, N, ic)
+    back = back_points(P, N, ic)
+    auto = detect_landmarks(P, back, dmap, ic)
+    lm = {k: auto[k] for k in LANDMARKS}
+    source = {k: "auto" for k in LANDMARKS}
+    for k, v in (landmarks or {}).items():
+        if k not in LANDMARKS:
+            raise ValueError(f"unknown landmark {k!r}: choose from {', '.join(LANDMARKS)}")
+        if v is None:
+            continue
+        q = frame.to_patient(np.asarray(v, float).reshape(3))
+        y = dmap.at(q[0], q[2])
+        lm[k] = np.array([q[0], y if np.isfinite(y) else q[1], q[2]])
+        source[k] = "clinician"
+    vp, sp = lm["vertebra_prominens"], lm["sacral_point"]
+    if not vp[2] > sp[2] + 100:
+        raise ValueError(f"vertebra prominens ({vp[2]:.0f} mm) not well above the sacral point ({sp[2]:.0f} mm)")
+    length = float(vp[2] - sp[2])
+
+    sections = []
+    mz, mx, _ = auto["midline"]
+    okm = np.isfinite(mx)
+    fine = replace(ic, symmetry_search_mm=6.0)
+    for s in np.arange(ic.end_margin, 1 - ic.end_margin + 1e-9, ic.section_step):
+        z = sp[2] + s * length
+        x_line = sp[0] + s * (vp[0] - sp[0])
+        row = dmap.row(z)
+        x0, misfit = symmetry_point(dmap.x, row, float(np.interp(z, mz[okm], mx[okm])), fine)
+        if not np.isfinite(x0):
+            continue
+        m = slope_at(dmap.x, row, x0, ic.rotation_window_mm)
+        rot = float(np.degrees(np.arctan(-m)))  # right side higher -> positive
+        x_spine = x0 - ic.spine_depth_mm * np.sin(np.radians(rot))
+        u = np.arange(ic.hump_range_mm[0], ic.hump_range_mm[1] + 1e-9, ic.grid_mm)
+        right = np.interp(x0 - u, dmap.x, row, left=np.nan, right=np.nan)
+        left = np.interp(x0 + u, dmap.x, row, left=np.nan, right=np.nan)
+        h = right - left
+        hump = signed_max(h)
+        k = int(np.nanargmax(np.abs(h))) if np.isfinite(h).any() else 0
+        sections.append({
+            "level": round(float(s), 4), "z_mm": float(z),
+            "symmetry_point_mm": float(x0), "symmetry_misfit_mm": float(misfit),
+            "symmetry_line_deviation_mm": float(-(x0 - x_line)),
+            "lateral_deviation_mm": float(-(x_spine - x_line)),
+            "surface_rotation_deg": rot,
+            "hump_mm": hump,
+            "hump_angle_deg": float(np.degrees(np.arctan2(hump, 2 * u[k]))) if np.isfinite(hump) else float("nan"),
+            "depth_mm": float(np.interp(x0, dmap.x, row)),
+        })
+    if len(sections) < 3:
+        raise ValueError("too few horizontal sections of the back could be read")
+
+    # whole-torso asymmetry: the trunk between SP and VP registered to its own mirror image
+    zb = ic.mirror_band * length
+    mask = trunk_mask(P, sp[2] - zb, vp[2] + zb, ic)
+    asym = np.full(len(torso), np.nan)
+    asym_fig = {"mean_abs_mm": float("nan"), "rms_mm": float("nan"), "p95_abs_mm": float("nan")}
+    try:
+        sub = Torso(torso.points[mask], torso.normals[mask])
+        res = symmetry_plane(sub, frame, rc)
+        # each trunk point against the mirror image (registered): + where this side stands out
+        from .frame import mirror
+
+        m_img = mirror(sub, frame).transformed(res["R"], res["t"])
+        d, _, _, over = PlaneIndex(m_img).distances(sub.points, rc.max_tangential)
+        d = np.where(over, d, np.nan)
+        asym[np.nonzero(mask)[0]] = d
+        a = np.abs(d[np.isfinite(d)])
+        asym_fig = {"mean_abs_mm": float(a.mean()), "rms_mm": float(np.sqrt(np.mean(a ** 2))),
+                    "p95_abs_mm": float(np.percentile(a, 95)), "points": int(len(a))}
+    except ValueError:
+        pass
+
+    regions = {}
+    for name, lo, hi in ic.regions:
+        sel = [s for s in sections if lo <= s["level"] < hi or (hi >= 1.0 and s["level"] <= hi)]
+        if sel:
+            regions[name] = {"levels": [lo, hi],
+                             "lateral_deviation_mm": _summary(sel, "lateral_deviation_mm"),
+                             "surface_rotation_deg": _summary(sel, "surface_rotation_deg"),
+                             "hump_mm": signed_max([s["hump_mm"] for s in sel])}
+    apex = max(sections, key=lambda s: abs(s["lateral_deviation_mm"]))
+    rot_apex = max(sections, key=lambda s: abs(s["surface_rotation_deg"]))
+    lm_rig = {k: frame.to_rig(v) for k, v in lm.items()}
+    report = {
+        "format": FORMAT,
+        "source": torso.source,
+        "lateral_deviation_mm": _summary(sections, "lateral_deviation_mm"),
+        "surface_rotation_deg": _summary(sections, "surface_rotation_deg"),
+        "hump_mm": signed_max([s["hump_mm"] for s in sections]),
+        "hump_angle_deg": signed_max([s["hump_angle_deg"] for s in sections]),
+        "trunk_imbalance_mm": float(-(vp[0] - sp[0])),
+        "trunk_inclination_mm": float(vp[1] - sp[1]),
+        "trunk_length_mm": float(np.linalg.norm(vp - sp)),
+        "asymmetry_mm": asym_fig["mean_abs_mm"],
+        "asymmetry": asym_fig,
+        "symmetry_line_deviation_mm": _summary(sections, "symmetry_line_deviation_mm"),
+        "apex": {"lateral_deviation": {"level": apex["level"], "z_mm": apex["z_mm"],
+                                       "value_mm": apex["lateral_deviation_mm"]},
+                 "surface_rotation": {"level": rot_apex["level"], "z_mm": rot_apex["z_mm"],
+                                      "value_deg": rot_apex["surface_rotation_deg"]}},
+        "landmarks": {k: {"position_mm": lm_rig[k].tolist(), "source": source[k],
+                          "method": auto["vp_method" if k == "vertebra_prominens" else "sp_method"]
+                          if source[k] == "auto" else "clinician"} for k in LANDMARKS},
+        "frame": {**frame.to_dict(), "facing": facing,
+                  "convention": "x left, y posterior, z up; reported lateral values positive towards the "
+                                "patient's right, rotation positive when the right back comes backwards"},
+        "regions": regions,
+        "sections": sections,
+        "units": {"lengths": "mm", "angles": "deg"},
+    }
+    return TorsoAnalysis(report, frame, dmap, lm_rig, asym, sections)
+
+
+def compute_indices(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: dict | None = None) -> dict:
+    """The ``torso-indices/1`` report of one torso (see :func:`analyse_torso`)."""
+    return analyse_torso(torso, cfg, landmarks).report

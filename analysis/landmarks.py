@@ -1,0 +1,159 @@
+"""Landmarks of the back found automatically: vertebra prominens (VP) and sacral point (SP).
+
+Both are found in the patient frame (x left, y posterior, z up) from the shape:
+
+- VP, the spinous process of C7, sits at the cervico-thoracic junction, where
+  the trunk narrows from the shoulders into the neck: the lowest height above
+  the widest level where the trunk's width falls below ``neck_width_ratio`` of
+  the shoulders'; when the surface stops below the neck, the top of the back.
+- SP, the sacral point (top of the gluteal cleft, S1–S2), is the most
+  posterior point of the back's line of symmetry below the lumbar lordosis:
+  the midline profile's deepest point in the lower 60 % of the back, then its
+  most posterior point below that.
+
+Formetric finds the lumbar dimples (the posterior superior iliac spines) as
+the two concavities either side of SP; on a smooth skin they may not exist,
+so they are not used here. A clinician corrects either landmark by passing
+its rig-frame position (``overrides``); the correction is snapped to the
+back's surface at that height.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .backsurface import DepthMap, central_extent, symmetry_point
+from .config import IndicesConfig
+
+
+def width_profile(P: np.ndarray, cfg: IndicesConfig, step_mm: float = 4.0):
+    """Heights (mm) and the trunk's width (mm) there: the gap-free run of x holding the midline (arms cut off)."""
+    lo, hi = P[:, 2].min(), P[:, 2].max()
+    zs = np.arange(lo + step_mm / 2, hi, step_mm)
+    w = np.full(len(zs), np.nan)
+    idx = np.floor((P[:, 2] - lo) / step_mm).astype(int)
+    order = np.argsort(idx)
+    bounds = np.searchsorted(idx[order], np.arange(len(zs) + 1))
+    for k in range(len(zs)):
+        sel = order[bounds[k]:bounds[k + 1]]
+        if len(sel) >= 10:
+            a, b = central_extent(P[sel, 0], cfg.gap_mm, 0.0)
+            w[k] = b - a
+    return zs, w
+
+
+def robust_line(zs: np.ndarray, xs: np.ndarray, half: int = 5, tol_mm: float = 8.0) -> np.ndarray:
+    """``xs`` with outliers (farther than ``tol_mm`` from the running median) replaced by that median."""
+    out = xs.copy()
+    med = np.full(len(xs), np.nan)
+    for i in range(len(xs)):
+        w = xs[max(0, i - half):i + half + 1]
+        w = w[np.isfinite(w)]
+        if len(w):
+            med[i] = np.median(w)
+    bad = ~np.isfinite(xs) | (np.abs(xs - med) > tol_mm)
+    out[bad] = med[bad]
+    return out
+
+
+def midline_profile(dmap: DepthMap, cfg: IndicesConfig, step_mm: float = 4.0, centre: float = 0.0):
+    """Heights, symmetry points x (mm) and the back's depth on them, every ``step_mm`` of the depth map.
+
+    Two passes: a wide window (``1.75 × symmetry_window_mm``, the back's whole
+    curvature) over the full search range gives a coarse line, made robust by a
+    running median; the symmetry window then refines each point within 12 mm of it.
+    """
+    from dataclasses import replace
+
+    zs = np.arange(dmap.z[0], dmap.z[-1], step_mm)
+    wide = replace(cfg, symmetry_window_mm=1.75 * cfg.symmetry_window_mm)
+    narrow = replace(cfg, symmetry_search_mm=12.0)
+    rows = [dmap.row(z) for z in zs]
+    x1 = np.array([symmetry_point(dmap.x, r, centre, wide)[0] for r in rows])
+    x1 = robust_line(zs, x1)
+    xs, ds = np.full(len(zs), np.nan), np.full(len(zs), np.nan)
+    for k, r in enumerate(rows):
+        if not np.isfinite(x1[k]):
+            continue
+        x0, _ = symmetry_point(dmap.x, r, x1[k], narrow)
+        xs[k] = x0
+    xs = robust_line(zs, xs, tol_mm=4.0)
+    for k, r in enumerate(rows):
+        if np.isfinite(xs[k]):
+            ds[k] = np.interp(xs[k], dmap.x, r)
+    return zs, xs, ds
+
+
+def _smooth(v, n=3):
+    out = v.copy()
+    good = np.isfinite(v)
+    for i in range(len(v)):
+        w = v[max(0, i - n):i + n + 1]
+        w = w[np.isfinite(w)]
+        out[i] = np.mean(w) if len(w) and good[i] else np.nan
+    return out
+
+
+def find_vp_height(P: np.ndarray, back_mask: np.ndarray, cfg: IndicesConfig) -> tuple[float, str]:
+    """Height of VP (mm, patient frame) and how it was found."""
+    zs, w = width_profile(P, cfg)
+    B = P[back_mask & (np.abs(P[:, 0]) < 60)]
+    z_top = float(np.percentile(B[:, 2], 99.7)) if len(B) else float(np.nanmax(zs))
+    z_mid = float(np.nanmedian(P[:, 2]))
+    upper = (zs > z_mid) & np.isfinite(w)
+    if upper.sum() >= 3:
+        k_max = np.nonzero(upper)[0][np.nanargmax(w[upper])]
+        wmax = w[k_max]
+        for k in range(k_max + 1, len(zs)):
+            if np.isfinite(w[k]) and w[k] < cfg.neck_width_ratio * wmax:
+                # interpolate the crossing between k-1 and k
+                w0, w1 = w[k - 1], w[k]
+                f = (w0 - cfg.neck_width_ratio * wmax) / max(w0 - w1, 1e-9) if np.isfinite(w0) else 1.0
+                return float(min(zs[k - 1] + f * (zs[k] - zs[k - 1]), z_top)), "neck"
+    return z_top, "top of the back"
+
+
+def find_sp_height(zs: np.ndarray, depth: np.ndarray, z_vp: float) -> tuple[float, str]:
+    """Height of SP from the midline depth profile: most posterior point below the lordosis."""
+    d = _smooth(depth)
+    ok = np.isfinite(d) & (zs < z_vp)
+    if ok.sum() < 5:
+        raise ValueError("too little of the back's midline is seen to find the sacral point")
+    z, d = zs[ok], d[ok]
+    lower = z <= z[0] + 0.6 * (z_vp - z[0])
+    k_l = int(np.argmin(np.where(lower, d, np.inf)))
+    if k_l == 0:
+        return float(z[0]), "bottom of the back"
+    k_sp = int(np.argmax(d[:k_l + 1]))
+    return float(z[k_sp]), "sacral prominence" if k_sp > 0 else "bottom of the back"
+
+
+def detect_landmarks(P: np.ndarray, back_mask: np.ndarray, dmap: DepthMap, cfg: IndicesConfig) -> dict:
+    """VP and SP (patient frame, mm) on the back's symmetry line, with how each was found."""
+    z_vp, how_vp = find_vp_height(P, back_mask, cfg)
+    zs, xs, ds = midline_profile(dmap, cfg)
+    z_sp, how_sp = find_sp_height(zs, ds, z_vp)
+    return {"vertebra_prominens": point_on_midline(dmap, z_vp, xs, zs, cfg, below=True), "vp_method": how_vp,
+            "sacral_point": point_on_midline(dmap, z_sp, xs, zs, cfg), "sp_method": how_sp,
+            "midline": (zs, xs, ds)}
+
+
+def point_on_midline(dmap: DepthMap, z: float, xs=None, zs=None, cfg=None, below=False, x_hint=None) -> np.ndarray:
+    """The back's surface point on the symmetry line at height ``z`` (patient frame).
+
+    With ``below`` the symmetry point is taken 10 mm lower (the neck's own
+    shape above VP is not the back's).
+    """
+    zq = z - 10.0 if below else z
+    if x_hint is not None:
+        x0 = x_hint
+    elif xs is not None and np.isfinite(xs).any():
+        ok = np.isfinite(xs)
+        x0 = float(np.interp(zq, zs[ok], xs[ok]))
+    else:
+        x0 = 0.0
+    for dz in (0.0, z - zq, 20.0, 30.0, 40.0):
+        y = dmap.at(x0, z - dz)
+        if np.isfinite(y):
+            break
+    return np.array([x0, y, z])

@@ -1,0 +1,136 @@
+"""Repeatability of the rig and the minimal detectable change (MDC) of every figure.
+
+From pairs of captures of the same subject close in time (no real change):
+
+- an index measured on both captures (``a_i``, ``b_i``): standard error of
+  measurement ``SEM = sqrt(sum (a_i - b_i)^2 / (2 n))``;
+- a comparison figure, itself a change between two captures (``D_i``, e.g. a
+  region's mean signed distance), has ``SD(D) = sqrt(mean D_i^2)`` around a
+  true change of zero, i.e. ``SEM = SD(D) / sqrt(2)``.
+
+In both cases ``MDC = 1.96 · sqrt(2) · SEM``: the smallest change between two
+captures that exceeds the measurement error with 95 % confidence (Weir 2005;
+de Vet et al. 2006). With one pair the estimate is crude; the service should
+pool every repeat pair of a rig.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+Z95 = 1.96
+
+
+def flatten(d: dict, prefix: str = "") -> dict:
+    """Numeric leaves of a nested dict as ``{"a.b.c": value}`` (lists and non-numbers left out)."""
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(flatten(v, key + "."))
+        elif isinstance(v, (int, float)) and not isinstance(v, bool) and v is not None and math.isfinite(v):
+            out[key] = float(v)
+    return out
+
+
+INDEX_FIGURES = ("lateral_deviation_mm.rms", "lateral_deviation_mm.max", "surface_rotation_deg.rms",
+                 "surface_rotation_deg.max", "hump_mm", "hump_angle_deg", "trunk_imbalance_mm",
+                 "trunk_inclination_mm", "trunk_length_mm", "asymmetry_mm", "symmetry_line_deviation_mm.rms",
+                 "symmetry_line_deviation_mm.max")
+
+
+def mdc_from_index_pairs(pairs, figures=INDEX_FIGURES) -> dict:
+    """MDC of each index from repeat pairs of ``torso-indices/1`` reports: ``{figure: {"sem", "mdc", "n"}}``."""
+    diffs = {}
+    for a, b in pairs:
+        fa, fb = flatten(a), flatten(b)
+        for k in figures:
+            if k in fa and k in fb:
+                diffs.setdefault(k, []).append(fa[k] - fb[k])
+    out = {}
+    for k, d in diffs.items():
+        d = np.asarray(d)
+        sem = float(np.sqrt(np.sum(d ** 2) / (2 * len(d))))
+        out[k] = {"sem": sem, "mdc": Z95 * math.sqrt(2) * sem, "n": int(len(d))}
+    return out
+
+
+COMPARISON_FIGURES = ("average_normal_distance_mm", "signed_distance_mm.mean", "signed_distance_mm.p05",
+                      "signed_distance_mm.p95")
+
+
+def mdc_from_comparisons(reports) -> dict:
+    """MDC of each comparison figure from ``torso-comparison/1`` reports of repeat pairs.
+
+    Covers the headline figures and every region's ``mean``, ``p05``, ``p95``
+    and ``mean_abs``. Figures that are a spread rather than a signed change
+    (average normal distance, mean_abs, p05, p95) are not zero without change:
+    their MDC is the repeat value plus 1.96 times its spread over the pairs
+    (one pair: the repeat value itself, times 1.5 as a margin).
+    """
+    vals = {}
+    for r in reports:
+        f = flatten(r)
+        keys = [k for k in f if k in COMPARISON_FIGURES or (k.startswith("regions.") and
+                                                            k.rsplit(".", 1)[-1] in ("mean", "p05", "p95", "mean_abs"))]
+        for k in keys:
+            vals.setdefault(k, []).append(f[k])
+    out = {}
+    for k, v in vals.items():
+        v = np.asarray(v)
+        last = k.rsplit(".", 1)[-1]
+        if last == "mean":  # a signed change, zero without change
+            sd = float(np.sqrt(np.mean(v ** 2)))
+            out[k] = {"sem": sd / math.sqrt(2), "mdc": Z95 * sd, "n": int(len(v)), "kind": "signed change"}
+        else:  # a spread: the repeat level plus its own variability
+            level = float(np.mean(np.abs(v)))
+            spread = float(np.std(v, ddof=1)) if len(v) > 1 else 0.5 * level
+            out[k] = {"sem": spread / math.sqrt(2), "mdc": level + Z95 * spread, "n": int(len(v)),
+                      "kind": "spread; the MDC is a threshold on the figure itself"}
+    return out
+
+
+def exceeds_mdc(change: float, mdc: float | dict | None) -> bool | None:
+    """Whether ``|change|`` exceeds its minimal detectable change (None when either is unknown)."""
+    if isinstance(mdc, dict):
+        mdc = mdc.get("mdc")
+    if mdc is None or change is None or not math.isfinite(change):
+        return None
+    return bool(abs(change) > mdc)
+
+
+def index_changes(earlier: dict, later: dict, mdc: dict | None = None, figures=INDEX_FIGURES) -> dict:
+    """Change of every index between two ``torso-indices/1`` reports, flagged against its MDC.
+
+    Returns ``{figure: {"earlier", "later", "change", "mdc", "exceeds_mdc"}}``.
+    """
+    fa, fb = flatten(earlier), flatten(later)
+    out = {}
+    for k in figures:
+        if k in fa and k in fb:
+            m = (mdc or {}).get(k)
+            m = m.get("mdc") if isinstance(m, dict) else m
+            ch = fb[k] - fa[k]
+            out[k] = {"earlier": fa[k], "later": fb[k], "change": ch, "mdc": m, "exceeds_mdc": exceeds_mdc(ch, m)}
+    return out
+
+
+def flag_comparison(report: dict, mdc: dict) -> dict:
+    """Add ``exceeds_mdc`` (figure -> bool) to a ``torso-comparison/1`` report, in place; returns it."""
+    f = flatten(report)
+    flags = {}
+    for k, m in mdc.items():
+        if k in f:
+            v = m.get("mdc") if isinstance(m, dict) else m
+            flags[k] = exceeds_mdc(f[k], v)
+    report["exceeds_mdc"] = flags
+    report["mdc"] = {k: (m.get("mdc") if isinstance(m, dict) else m) for k, m in mdc.items()}
+    return report
+
+
+def repeatability(comparison: dict) -> dict:
+    """The paper's repeatability figures of one repeat pair: average normal distance and matched fraction."""
+    return {"average_normal_distance_mm": comparison.get("average_normal_distance_mm"),
+            "matched_fraction": comparison.get("matched_fraction")}

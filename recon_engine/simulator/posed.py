@@ -1,0 +1,84 @@
+"""The true posed subject of a capture without rendering (for analysis tests and benchmarks).
+
+``posed_subject`` gives the same posture, vertices and landmarks as
+``simulate`` writes into ``truth/<name>/`` for the same configuration (seed,
+session and capture list), in milliseconds instead of a render. World frame
+as everywhere in the simulator: mm, Z up, the test field's pose 0 frame; the
+subject at rest faces -Y with its left towards +X.
+"""
+
+from __future__ import annotations
+
+
+import numpy as np
+
+from .bodies import Posture, curve_profiles, load_body, pose_body
+from .config import ScenarioConfig
+
+
+def draw_postures(cfg: ScenarioConfig) -> dict:
+    """Posture of every torso capture of ``cfg`` (name -> Posture), drawn as ``simulate`` draws them."""
+    from .scenario import _draw_posture
+    from .rig import rotation_about
+
+    _, _, rng_pose, rng_place = (
+        np.random.default_rng(s) for s in np.random.SeedSequence([cfg.seed, 1000 + cfg.session]).spawn(4))
+    placements, out = {}, {}
+    for name, visit in cfg.captures:
+        if visit not in placements:
+            yaw = rng_place.uniform(-cfg.subject.visit_yaw_deg, cfg.subject.visit_yaw_deg)
+            shift = np.array([*rng_place.uniform(-cfg.subject.visit_shift_mm, cfg.subject.visit_shift_mm, 2), 0.0])
+            placements[visit] = (rotation_about([0, 0, 1], yaw), shift)
+        out[name] = _draw_posture(cfg, rng_pose, visit, placements[visit])
+    return out
+
+
+def posed_subject(cfg: ScenarioConfig, capture: str | None = None, posture: Posture | None = None) -> dict:
+    """The posed subject of one capture of ``cfg``, or of an explicit ``posture``.
+
+    Returns ``{"vertices" (N, 3) mm world, "triangles" (M, 3), "torso_faces" (M,) bool, "spine" (K, 3),
+    "posture", "landmarks": {"vertebra_prominens", "sacral_point"} (skin points behind C7 and the sacrum,
+    found as ``simulate`` finds them, mm world), "curve": {"levels", "lateral_mm", "rotation_deg"}}``.
+    """
+    if posture is None:
+        postures = draw_postures(cfg)
+        if capture not in postures:
+            raise ValueError(f"no torso capture {capture!r} in the configuration (have {sorted(postures)})")
+        posture = postures[capture]
+    body = load_body(cfg.subject)
+    V, spine = pose_body(body, cfg.subject, posture)
+    posterior = posture.R @ np.array([0.0, 1.0, 0.0])
+    landmarks = {}
+    import open3d as o3d
+
+    mesh = o3d.t.geometry.TriangleMesh()
+    mesh.vertex.positions = o3d.core.Tensor(V.astype(np.float32))
+    mesh.triangle.indices = o3d.core.Tensor(body.triangles.astype(np.int32))
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(mesh)
+    for key, p in (("vertebra_prominens", spine[-1]), ("sacral_point", spine[0])):
+        ray = np.concatenate([p, posterior])[None].astype(np.float32)
+        t = float(scene.cast_rays(o3d.core.Tensor(ray))["t_hit"].numpy()[0])
+        landmarks[key] = (np.asarray(p) + t * posterior) if np.isfinite(t) else None
+    levels = np.linspace(0, 1, 21)
+    lateral, rotation = curve_profiles(levels, cfg.subject, posture.rotation_deg, posture.lateral_mm)
+    return {"vertices": V, "triangles": body.triangles, "torso_faces": body.torso_faces, "spine": spine,
+            "posture": posture, "landmarks": landmarks,
+            "curve": {"levels": levels, "lateral_mm": lateral, "rotation_deg": rotation}}
+
+
+def posture_like(cfg: ScenarioConfig, rotation_deg: float, lateral_mm: float | None = None, breathing: float = 0.0,
+                 growth: float = 0.0, R=None, t=None) -> Posture:
+    """A posture with a chosen curve severity, at rest in the rig centre unless ``R``, ``t`` are given.
+
+    ``lateral_mm`` defaults to the configuration's ratio of lateral deviation to rotation.
+    """
+    sc = cfg.subject
+    if lateral_mm is None:
+        lateral_mm = sc.lateral_mm * rotation_deg / sc.rotation_deg if sc.rotation_deg else sc.lateral_mm
+    return Posture(rotation_deg=float(rotation_deg), lateral_mm=float(lateral_mm), breathing=float(breathing),
+                   growth=float(growth), R=np.eye(3) if R is None else np.asarray(R, float),
+                   t=np.zeros(3) if t is None else np.asarray(t, float))
+
+
+__all__ = ["draw_postures", "posed_subject", "posture_like"]
