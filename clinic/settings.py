@@ -79,6 +79,7 @@ INSTALLED_APPS = [
     "django.contrib.sessions",
     "django.contrib.messages",
     "django.contrib.staticfiles",
+    "django_celery_beat",
     "clinic",
 ]
 
@@ -120,13 +121,44 @@ MEDIA_URL = "media/"
 
 # Files through Django's storage API: the local file system by default, an
 # S3-compatible store (django-storages) when STORAGE_BACKEND names it.
+def storage_options(backend):
+    """OPTIONS of the default storage: a folder, or an S3-compatible bucket from S3_* variables."""
+    if backend == "django.core.files.storage.FileSystemStorage":
+        return {"location": str(MEDIA_ROOT)}
+    if backend.startswith("storages.backends.s3"):
+        bucket = os.environ.get("S3_BUCKET", "")
+        if not bucket:
+            raise ImproperlyConfigured(f"STORAGE_BACKEND={backend} needs S3_BUCKET")
+        options = {"bucket_name": bucket, "default_acl": None, "file_overwrite": False}
+        for var, key in (("S3_ENDPOINT_URL", "endpoint_url"), ("S3_REGION", "region_name"),
+                         ("S3_ACCESS_KEY_ID", "access_key"), ("S3_SECRET_ACCESS_KEY", "secret_key"),
+                         ("S3_LOCATION", "location")):
+            if os.environ.get(var):
+                options[key] = os.environ[var]
+        return options
+    return {}
+
+
+STORAGE_BACKEND = os.environ.get("STORAGE_BACKEND", "django.core.files.storage.FileSystemStorage")
 STORAGES = {
-    "default": {
-        "BACKEND": os.environ.get("STORAGE_BACKEND", "django.core.files.storage.FileSystemStorage"),
-        "OPTIONS": {} if os.environ.get("STORAGE_BACKEND") else {"location": str(MEDIA_ROOT)},
-    },
+    "default": {"BACKEND": STORAGE_BACKEND, "OPTIONS": storage_options(STORAGE_BACKEND)},
     "staticfiles": {"BACKEND": "django.contrib.staticfiles.storage.StaticFilesStorage"},
 }
+
+# Uploads: images are streamed to a temporary file in chunks, never held whole
+# in memory (the API reads the raw body itself, so DATA_UPLOAD_MAX_MEMORY_SIZE
+# and DATA_UPLOAD_MAX_NUMBER_FILES never see them; they stay at Django's
+# defaults for forms).
+FILE_UPLOAD_TEMP_DIR = str(VAR_DIR / "tmp")
+Path(FILE_UPLOAD_TEMP_DIR).mkdir(parents=True, exist_ok=True)
+MAX_IMAGE_BYTES = envint("MAX_IMAGE_BYTES", 200 * 1024 * 1024)
+MAX_BUNDLE_BYTES = envint("MAX_BUNDLE_BYTES", 2 * 1024 * 1024 * 1024)
+# where workers unpack captures for the engine (local to each worker)
+WORK_DIR = os.environ.get("WORK_DIR", str(VAR_DIR / "work"))
+
+LOGIN_URL = "login"
+LOGIN_REDIRECT_URL = "patients"
+LOGOUT_REDIRECT_URL = "login"
 
 # Celery: without a broker, tasks run in-process (the embedded default).
 CELERY_BROKER_URL = os.environ.get("CELERY_BROKER_URL", "")
@@ -142,3 +174,13 @@ CELERY_TASK_TIME_LIMIT = envint("CELERY_TASK_TIME_LIMIT", 3900)
 CELERY_BROKER_TRANSPORT_OPTIONS = {"visibility_timeout": CELERY_TASK_TIME_LIMIT + 600}
 CELERY_TASK_SERIALIZER = "json"
 CELERY_ACCEPT_CONTENT = ["json"]
+
+# Scheduled work (Celery beat with django-celery-beat's database scheduler):
+# rigs due for recalibration are flagged.
+CELERY_BEAT_SCHEDULER = "django_celery_beat.schedulers:DatabaseScheduler"
+CELERY_BEAT_SCHEDULE = {
+    "flag-rigs-for-recalibration": {
+        "task": "clinic.tasks.flag_rigs_for_recalibration",
+        "schedule": envint("RECALIBRATION_CHECK_SECONDS", 3600),
+    },
+}

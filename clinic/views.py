@@ -1,5 +1,10 @@
+from django.contrib.auth.decorators import login_required
 from django.db import connection
+from django.db.models import Q
 from django.http import JsonResponse
+from django.shortcuts import render
+
+from .models import Patient, clinics_of
 
 
 def healthz(request):
@@ -12,3 +17,13 @@ def healthz(request):
         database = False
     return JsonResponse({"status": "ok" if database else "degraded", "database": database},
                         status=200 if database else 503)
+
+
+@login_required
+def patients(request):
+    """The patients of the user's clinics, with a search by name or identifier."""
+    q = request.GET.get("q", "").strip()
+    rows = Patient.objects.filter(clinic__in=clinics_of(request.user)).select_related("clinic")
+    if q:
+        rows = rows.filter(Q(name__icontains=q) | Q(identifier__icontains=q))
+    return render(request, "clinic/patients.html", {"patients": rows, "q": q})

@@ -28,6 +28,7 @@ __all__ = [
     "read_rig", "write_rig", "rig_to_dict", "read_testfield", "write_testfield", "read_capture",
     "missing_cameras", "read_image_bytes", "load_image", "load_images", "to_float_image", "write_capture",
     "zip_capture", "read_calibration", "write_calibration", "read_json", "write_json",
+    "parse_capture_manifest", "check_zip_members", "decode_image", "rig_from_dict",
 ]
 
 RIG_FORMAT = "torso-rig/1"
@@ -424,6 +425,21 @@ def _parse_capture(obj: dict, where, source: Path, prefix: str, rig: Rig | None)
     return Capture(source, kind, rig_serial, captured_at, tuple(images), testfield, pose, extra, prefix)
 
 
+def parse_capture_manifest(obj, where, rig: Rig | None = None) -> Capture:
+    """A ``capture.json`` already loaded as JSON (e.g. received over HTTP), validated.
+
+    The images themselves are not looked at. Errors name ``where``.
+    """
+    if not isinstance(obj, dict):
+        raise FormatError(where, "capture.json must be a JSON object")
+    return _parse_capture(obj, where, Path(str(where)), "", rig)
+
+
+def check_zip_members(zf: zipfile.ZipFile, path) -> None:
+    """Refuse a zip with a member outside the bundle (absolute, ``..``, drive letter) or a link."""
+    _check_zip_members(zf, Path(path))
+
+
 def read_capture(path, rig: Rig | None = None) -> Capture:
     """Read and validate a capture bundle (folder or .zip) without decoding its images.
 
@@ -497,7 +513,17 @@ def load_image(capture: Capture, camera: str, rig: Rig | None = None, *, verify:
         actual = hashlib.sha256(data).hexdigest()
         if actual != im.sha256:
             raise FormatError(where, f"camera {camera!r}: sha256 mismatch (manifest {im.sha256}, file {actual})")
-    suffix = PurePosixPath(im.file).suffix.lower()
+    return decode_image(data, where, camera, PurePosixPath(im.file).suffix.lower(), rig)
+
+
+def decode_image(data: bytes, where, camera: str, suffix: str, rig: Rig | None = None) -> np.ndarray:
+    """An image file's bytes decoded to grayscale (uint8 or uint16, (height, width)), checked.
+
+    The file must decode completely, be 8 or 16 bits and, with ``rig``, have
+    the size ``rig.json`` gives for ``camera``; errors name ``where``.
+    """
+    import cv2
+
     if _truncated(data, suffix):
         raise FormatError(where, f"camera {camera!r}: image is truncated (no end marker)")
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)

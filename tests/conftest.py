@@ -6,8 +6,8 @@ from recon_engine.simulator.config import preset
 from recon_engine.simulator.scenario import simulate
 
 
-def _testfield_only(tmp_path_factory, name, **kw):
-    cfg = preset("tiny", seed=11, captures=(), **kw)
+def _testfield_only(tmp_path_factory, name, captures=(), **kw):
+    cfg = preset("tiny", seed=11, captures=captures, **kw)
     out = tmp_path_factory.mktemp(name) / "scenario"
     simulate(out, cfg, progress=lambda msg: None)
     return out
@@ -15,8 +15,8 @@ def _testfield_only(tmp_path_factory, name, **kw):
 
 @pytest.fixture(scope="session")
 def rig_session_1(tmp_path_factory):
-    """Test-field captures of a tiny rig (3 poses), session 1."""
-    return _testfield_only(tmp_path_factory, "session1", session=1)
+    """Test-field captures of a tiny rig (3 poses), session 1, and one torso capture (visit0-a)."""
+    return _testfield_only(tmp_path_factory, "session1", captures=(("visit0-a", 0),), session=1)
 
 
 @pytest.fixture(scope="session")
@@ -71,3 +71,74 @@ def torso_scenario(tmp_path_factory):
     simulate(out, preset("tiny", seed=0), progress=lambda msg: None)
     return out
 
+
+
+# --- the clinic service: a few named users, one with no access ---------------------
+
+@pytest.fixture
+def clinic(db):
+    from clinic.models import Clinic
+
+    return Clinic.objects.create(name="Northside Scoliosis Clinic")
+
+
+@pytest.fixture
+def other_clinic(db):
+    from clinic.models import Clinic
+
+    return Clinic.objects.create(name="Southside Clinic")
+
+
+def _user(name, clinic=None, role=None):
+    from django.contrib.auth.models import User
+
+    from clinic.models import Member
+
+    user = User.objects.create_user(name, f"{name}@example.org", "pw-" + name)
+    if clinic is not None:
+        Member.objects.create(clinic=clinic, user=user, role=role)
+    return user
+
+
+@pytest.fixture
+def alice(clinic):
+    """A technician of the clinic: registers rigs and test fields."""
+    from clinic.models import Member
+
+    return _user("alice", clinic, Member.TECHNICIAN)
+
+
+@pytest.fixture
+def charlie(clinic):
+    """A clinician of the clinic: patients and visits, no rigs."""
+    from clinic.models import Member
+
+    return _user("charlie", clinic, Member.CLINICIAN)
+
+
+@pytest.fixture
+def olga(other_clinic):
+    """An administrator of another clinic."""
+    from clinic.models import Member
+
+    return _user("olga", other_clinic, Member.ADMINISTRATOR)
+
+
+@pytest.fixture
+def nobody(db):
+    """A user with no clinic."""
+    return _user("nobody")
+
+
+@pytest.fixture
+def small_rig(clinic):
+    """The boundary tests' small rig (3 cameras of 40 x 30 px), registered; ``(rig, key)``."""
+    from clinic.api import sync_cameras
+    from clinic.models import Rig, RigKey, TestField
+    from recon_engine.formats import rig_from_dict
+    from tests.boundary_fixtures import RIG
+
+    rig = Rig.objects.create(clinic=clinic, serial=RIG["serial"], description=RIG)
+    sync_cameras(rig, rig_from_dict(RIG))
+    TestField.objects.create(clinic=clinic, name="tower", description={})
+    return rig, RigKey.issue(rig)[1]

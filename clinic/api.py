@@ -1,0 +1,535 @@
+"""The JSON API: the rig uploads its captures; staff register rigs, patients and visits.
+
+OpenAPI at ``/api/openapi.json`` (browsable at ``/api/docs``). A rig
+authenticates with ``Authorization: Bearer <key>``; staff with their login
+session. Every query is scoped to what the caller may see: anything else is
+a 404, as if it did not exist.
+
+Images are streamed to storage in chunks while their sha256 is computed;
+nothing is held whole in memory and nothing is kept unless it checks out.
+"""
+
+import hashlib
+import json
+import tempfile
+import zipfile
+from pathlib import Path, PurePosixPath
+from typing import Optional
+
+from django.conf import settings
+from django.core.files import File
+from django.core.files.storage import default_storage
+from django.db import IntegrityError, transaction
+from django.http import FileResponse
+from django.shortcuts import get_object_or_404
+from django.utils import timezone
+from ninja import NinjaAPI, Schema
+from ninja.security import HttpBearer, django_auth
+
+from recon_engine.formats import FormatError, check_zip_members, decode_image, parse_capture_manifest, rig_from_dict
+
+from . import pipeline
+from .models import (CaptureImage, CaptureSession, Clinic, Job, Member, Patient, Reconstruction, Rig, RigKey,
+                     TestField, Visit, clinics_of)
+
+CHUNK = 1 << 20
+
+
+class ApiError(Exception):
+    def __init__(self, status: int, detail: str):
+        super().__init__(detail)
+        self.status, self.detail = status, detail
+
+
+class RigKeyAuth(HttpBearer):
+    def authenticate(self, request, token):
+        key = RigKey.lookup(token)
+        if key is None:
+            return None
+        RigKey.objects.filter(pk=key.pk).update(last_used=timezone.now())
+        request.rig = key.rig
+        return key.rig
+
+
+api = NinjaAPI(title="torsoscan", version="1", urls_namespace="api",
+               description="The rig's upload API and the clinic's records. Files follow capture-format.md.")
+
+
+@api.exception_handler(ApiError)
+def _api_error(request, exc):
+    return api.create_response(request, {"detail": exc.detail}, status=exc.status)
+
+
+@api.exception_handler(FormatError)
+def _format_error(request, exc):
+    return api.create_response(request, {"detail": str(exc)}, status=400)
+
+
+def _respond(request, data, status=200):
+    return api.create_response(request, data, status=status)
+
+
+# --- schemas ---------------------------------------------------------------------------
+
+class SessionIn(Schema):
+    manifest: dict  # capture.json
+    visit: Optional[int] = None  # torso sessions: the visit they belong to
+    calibration_set: Optional[str] = None  # test-field sessions calibrated together (default: the capture's date)
+    poses: Optional[int] = None  # how many test-field poses the set holds (default: the rig's setting)
+
+
+class RigIn(Schema):
+    clinic: int
+    rig: dict  # rig.json
+    recalibration_interval_days: int = 30
+    poses_per_calibration: int = 3
+
+
+class TestFieldIn(Schema):
+    clinic: int
+    testfield: dict  # testfield.json
+
+
+class PatientIn(Schema):
+    clinic: int
+    identifier: str
+    name: str
+    date_of_birth: Optional[str] = None
+    sex: str = ""
+    notes: str = ""
+
+
+class VisitIn(Schema):
+    date: Optional[str] = None
+    reason: str = ""
+    notes: str = ""
+
+
+# --- helpers ------------------------------------------------------------------------------
+
+def _member_clinic(request, clinic_id, roles=(Member.ADMINISTRATOR, Member.TECHNICIAN)):
+    m = Member.objects.filter(user=request.user, clinic_id=clinic_id).first()
+    if m is None:
+        raise ApiError(404, f"clinic {clinic_id} not found")
+    if m.role not in roles:
+        raise ApiError(403, f"a {m.role} cannot do this; ask a clinic {' or '.join(roles)}")
+    return m.clinic
+
+
+def _sessions_for(request):
+    if getattr(request, "rig", None) is not None:
+        return CaptureSession.objects.filter(rig=request.rig)
+    return CaptureSession.objects.filter(rig__clinic__in=clinics_of(request.user))
+
+
+def _jobs_for(request):
+    if getattr(request, "rig", None) is not None:
+        return Job.objects.filter(rig=request.rig)
+    return Job.objects.filter(rig__clinic__in=clinics_of(request.user))
+
+
+def _job_out(job: Job) -> dict:
+    out = {"id": str(job.uid), "kind": job.kind, "state": job.state, "stage": job.stage, "percent": job.percent,
+           "error": job.error, "attempt": job.attempt,
+           "created": job.created.isoformat(), "finished": job.finished.isoformat() if job.finished else None}
+    if job.kind == Job.RECONSTRUCTION:
+        out["arms"] = {a.arm: {"state": a.state, "error": a.error} for a in job.arms.all()}
+        rec = Reconstruction.objects.filter(job=job).first()
+        if rec is not None:
+            out["result"] = {"status": rec.status, "points": rec.points,
+                             "files": [n for n, f in (("torso.ply", rec.torso), ("torso-mesh.ply", rec.mesh),
+                                                      ("report.json", rec.report_file)) if f]}
+    elif hasattr(job, "calibration_result"):
+        out["result"] = {"calibration": job.calibration_result.pk, "files": ["calibration.json"]}
+    return out
+
+
+def _session_out(s: CaptureSession) -> dict:
+    images = list(s.images.all())
+    return {"id": str(s.uid), "rig": s.rig.serial, "kind": s.kind, "state": s.state,
+            "pose": s.pose, "calibration_set": s.calibration_set or None,
+            "visit": s.visit_id, "captured_at": s.captured_at,
+            "received": sorted(i.camera for i in images if i.file),
+            "missing": sorted(i.camera for i in images if not i.file) if s.state == s.OPEN else s.missing_cameras,
+            "needs_recalibration": s.needs_recalibration,
+            "recalibration_reason": s.rig.recalibration_reason if s.needs_recalibration else "",
+            "jobs": [_job_out(j) for j in list(s.jobs.all()) + list(s.calibration_jobs.exclude(session=s))]}
+
+
+def _canonical_sha256(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def _spool(stream, limit: int, what: str):
+    """Copy a request (or zip member) stream to a temporary file in chunks: (file, sha256, size)."""
+    tmp = tempfile.NamedTemporaryFile(dir=settings.FILE_UPLOAD_TEMP_DIR, suffix=".part")
+    digest, size = hashlib.sha256(), 0
+    while True:
+        chunk = stream.read(CHUNK)
+        if not chunk:
+            break
+        size += len(chunk)
+        if size > limit:
+            tmp.close()
+            raise ApiError(413, f"{what} is larger than {limit} bytes")
+        digest.update(chunk)
+        tmp.write(chunk)
+    tmp.flush()
+    tmp.seek(0)
+    return tmp, digest.hexdigest(), size
+
+
+def _check_image(tmp, rig, image: CaptureImage, where: str):
+    """Refuse a truncated or undecodable image, or one of the wrong size (names the camera)."""
+    tmp.seek(0)
+    decode_image(tmp.read(), where, image.camera, PurePosixPath(image.file_name).suffix.lower(), rig)
+    tmp.seek(0)
+
+
+def _create_session(rig: Rig, body: SessionIn, idempotency_key: str):
+    """(session, created). A retried request (same key or same manifest) finds the first session."""
+    engine_rig = rig_from_dict(rig.description, f"rig {rig.serial}")
+    capture = parse_capture_manifest(body.manifest, "capture.json", engine_rig)
+    key = idempotency_key or "manifest:" + _canonical_sha256(body.manifest)
+    existing = CaptureSession.objects.filter(rig=rig, idempotency_key=key).first()
+    if existing is not None:
+        return existing, False
+    visit = testfield = None
+    if capture.kind == "torso":
+        if body.visit is not None:
+            visit = Visit.objects.filter(pk=body.visit, patient__clinic=rig.clinic).first()
+            if visit is None:
+                raise ApiError(404, f"visit {body.visit} not found in the rig's clinic")
+    else:
+        testfield = TestField.objects.filter(clinic=rig.clinic, name=capture.testfield).first()
+        if testfield is None:
+            raise ApiError(400, f"capture.json: test field {capture.testfield!r} is not registered for "
+                                f"{rig.clinic.name}")
+    if body.poses is not None and body.poses < 1:
+        raise ApiError(400, f"poses must be at least 1, got {body.poses}")
+    try:
+        with transaction.atomic():
+            session = CaptureSession.objects.create(
+                rig=rig, kind=capture.kind, visit=visit, testfield=testfield, pose=capture.pose,
+                calibration_set=(body.calibration_set or capture.captured_at[:10]) if testfield else "",
+                poses_expected=body.poses if testfield else None,
+                manifest=body.manifest, manifest_sha256=_canonical_sha256(body.manifest), idempotency_key=key,
+                captured_at=capture.captured_at, needs_recalibration=rig.needs_recalibration)
+            CaptureImage.objects.bulk_create(
+                CaptureImage(session=session, camera=im.camera, file_name=im.file, sha256=im.sha256)
+                for im in capture.images)
+    except IntegrityError:  # the same retry raced us: the first one won
+        return CaptureSession.objects.get(rig=rig, idempotency_key=key), False
+    return session, True
+
+
+def _finalize(session: CaptureSession, partial: bool) -> CaptureSession:
+    with transaction.atomic():
+        s = CaptureSession.objects.select_for_update().get(pk=session.pk)
+        if s.state != s.OPEN:
+            raise ApiError(409, f"session {s.uid} is already finalized ({s.state})")
+        missing = sorted(s.images.filter(file="").values_list("camera", flat=True))
+        if missing and not partial:
+            raise ApiError(409, f"session {s.uid}: no image yet for cameras {', '.join(missing)}; upload them "
+                                "or finalize with partial=true")
+        if len(missing) == s.images.count():
+            raise ApiError(409, f"session {s.uid}: no image was received")
+        engine_rig = rig_from_dict(s.rig.description, f"rig {s.rig.serial}")
+        absent = [c for c in engine_rig.camera_ids if c not in {e["camera"] for e in s.manifest["images"]}]
+        s.missing_cameras = sorted(set(missing) | set(absent))
+        s.state = s.PARTIAL if s.missing_cameras else s.FINALIZED
+        s.finalized = timezone.now()
+        s.save(update_fields=["state", "missing_cameras", "finalized"])
+        if missing:
+            s.images.filter(file="").delete()
+        _start_jobs(s)
+    return s
+
+
+def _start_jobs(s: CaptureSession):
+    """Inside the finalizing transaction: the job a finalized session starts (dispatched after commit)."""
+    if s.kind == "torso":
+        job = Job.objects.create(kind=Job.RECONSTRUCTION, rig=s.rig, session=s,
+                                 calibration=s.rig.current_calibration)
+        pipeline.dispatch(job)
+        return
+    # a test-field set is calibrated once all its poses are in
+    group = CaptureSession.objects.filter(rig=s.rig, kind="testfield", calibration_set=s.calibration_set,
+                                          state__in=[s.FINALIZED, s.PARTIAL])
+    expected = s.poses_expected or s.rig.poses_per_calibration
+    if len(set(group.values_list("pose", flat=True))) < expected:
+        return
+    if Job.objects.filter(kind=Job.CALIBRATION, sessions__in=group).exists():
+        return
+    job = Job.objects.create(kind=Job.CALIBRATION, rig=s.rig, session=s)
+    job.sessions.set(group)
+    pipeline.dispatch(job)
+
+
+# --- the rig's endpoints ------------------------------------------------------------------
+
+@api.post("/sessions", auth=RigKeyAuth(), tags=["rig"])
+def create_session(request, body: SessionIn):
+    """Open a capture session from its manifest (``capture.json``). Retrying is harmless.
+
+    Send an ``Idempotency-Key`` header to make retries explicit; without it
+    the manifest's checksum identifies the session.
+    """
+    rig = request.rig
+    serial = body.manifest.get("rig")
+    if serial != rig.serial:
+        raise ApiError(403, f"this key belongs to rig {rig.serial}; the manifest names rig {serial!r}")
+    session, created = _create_session(rig, body, request.headers.get("Idempotency-Key", ""))
+    return _respond(request, _session_out(session), 201 if created else 200)
+
+
+@api.put("/sessions/{session_id}/images/{camera}", auth=RigKeyAuth(), tags=["rig"])
+def put_image(request, session_id: str, camera: str):
+    """Upload one image as the raw request body. The server recomputes its sha256 and checks it decodes."""
+    s = get_object_or_404(_sessions_for(request), uid=_uuid(session_id))
+    if s.state != s.OPEN:
+        raise ApiError(409, f"session {s.uid} is finalized; it takes no more images")
+    image = s.images.filter(camera=camera).first()
+    if image is None:
+        raise ApiError(400, f"unknown camera {camera!r}: not in session {s.uid}'s manifest")
+    tmp, digest, size = _spool(request, settings.MAX_IMAGE_BYTES, f"image of camera {camera!r}")
+    with tmp:
+        if digest != image.sha256:
+            raise ApiError(400, f"camera {camera!r}: sha256 mismatch (manifest {image.sha256}, received {digest}, "
+                                f"{size} bytes); nothing was stored")
+        if image.file:  # a repeated PUT of the same image
+            return _respond(request, {"camera": camera, "sha256": digest, "size": size, "stored": "already"}, 200)
+        _check_image(tmp, rig_from_dict(s.rig.description, f"rig {s.rig.serial}"), image, image.file_name)
+        name = default_storage.save(pipeline_image_name(s, image), File(tmp))
+    with transaction.atomic():
+        n = CaptureImage.objects.filter(pk=image.pk, file="", session__state=CaptureSession.OPEN).update(
+            file=name, size=size, received=timezone.now())
+    if not n:  # another PUT of the same image won, or the session was finalized meanwhile
+        default_storage.delete(name)
+        s.refresh_from_db()
+        if s.state != s.OPEN:
+            raise ApiError(409, f"session {s.uid} was finalized meanwhile; the image was not stored")
+        return _respond(request, {"camera": camera, "sha256": digest, "size": size, "stored": "already"}, 200)
+    return _respond(request, {"camera": camera, "sha256": digest, "size": size, "stored": "now"}, 201)
+
+
+def pipeline_image_name(s: CaptureSession, image: CaptureImage) -> str:
+    return f"captures/{s.rig.serial}/{s.uid}/{image.file_name}"
+
+
+@api.post("/sessions/{session_id}/finalize", auth=RigKeyAuth(), tags=["rig"])
+def finalize_session(request, session_id: str, partial: bool = False):
+    """Close the session: complete, or (``?partial=true``) with the missing cameras named. Starts its job."""
+    s = get_object_or_404(_sessions_for(request), uid=_uuid(session_id))
+    s = _finalize(s, partial)
+    return _respond(request, _session_out(s), 200)
+
+
+@api.post("/bundles", auth=RigKeyAuth(), tags=["rig"])
+def upload_bundle(request, visit: Optional[int] = None, calibration_set: Optional[str] = None,
+                  poses: Optional[int] = None):
+    """A whole capture bundle as one zip (raw body): checked whole, stored whole, finalized; or refused."""
+    rig = request.rig
+    tmp, digest, size = _spool(request, settings.MAX_BUNDLE_BYTES, "the bundle")
+    stored = []
+    with tmp:
+        if not zipfile.is_zipfile(tmp):
+            raise ApiError(400, "the bundle is not a zip file")
+        tmp.seek(0)
+        with zipfile.ZipFile(tmp) as zf:
+            check_zip_members(zf, "bundle.zip")
+            names = set(zf.namelist())
+            if "capture.json" not in names:
+                raise ApiError(400, "bundle.zip: no capture.json at the zip's root")
+            try:
+                manifest = json.loads(zf.read("capture.json").decode("utf-8"))
+            except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise ApiError(400, f"bundle.zip!capture.json: not valid JSON ({exc})") from None
+            if not isinstance(manifest, dict) or manifest.get("rig") != rig.serial:
+                raise ApiError(403, f"this key belongs to rig {rig.serial}; the manifest names rig "
+                                    f"{manifest.get('rig') if isinstance(manifest, dict) else None!r}")
+            body = SessionIn(manifest=manifest, visit=visit, calibration_set=calibration_set, poses=poses)
+            engine_rig = rig_from_dict(rig.description, f"rig {rig.serial}")
+            capture = parse_capture_manifest(manifest, "bundle.zip!capture.json", engine_rig)
+            existing = CaptureSession.objects.filter(
+                rig=rig, idempotency_key=request.headers.get("Idempotency-Key", "")
+                or "manifest:" + _canonical_sha256(manifest)).first()
+            if existing is not None:
+                return _respond(request, _session_out(existing), 200)
+            for im in capture.images:
+                if im.file not in names:
+                    raise ApiError(400, f"bundle.zip!{im.file}: camera {im.camera!r}: image file is missing")
+            try:
+                checked = []
+                for im in capture.images:
+                    with zf.open(im.file) as member:
+                        part, d, n = _spool(member, settings.MAX_IMAGE_BYTES, f"bundle.zip!{im.file}")
+                    with part:
+                        if d != im.sha256:
+                            raise ApiError(400, f"bundle.zip!{im.file}: camera {im.camera!r}: sha256 mismatch "
+                                                f"(manifest {im.sha256}, file {d})")
+                        probe = CaptureImage(camera=im.camera, file_name=im.file)
+                        _check_image(part, engine_rig, probe, f"bundle.zip!{im.file}")
+                        name = default_storage.save(f"captures/{rig.serial}/incoming-{digest[:16]}/{im.file}",
+                                                    File(part))
+                    stored.append(name)
+                    checked.append((im, name, n))
+                with transaction.atomic():
+                    session, created = _create_session(rig, body, request.headers.get("Idempotency-Key", ""))
+                    if not created:
+                        raise _AlreadyThere(session)
+                    for im, name, n in checked:
+                        CaptureImage.objects.filter(session=session, camera=im.camera).update(
+                            file=name, size=n, received=timezone.now())
+                session = _finalize(session, partial=False)
+            except _AlreadyThere as there:
+                for name in stored:
+                    default_storage.delete(name)
+                return _respond(request, _session_out(there.session), 200)
+            except Exception:
+                for name in stored:  # nothing half-stored
+                    default_storage.delete(name)
+                raise
+    return _respond(request, _session_out(session), 201)
+
+
+class _AlreadyThere(Exception):
+    def __init__(self, session):
+        self.session = session
+
+
+@api.get("/sessions/{session_id}", auth=[RigKeyAuth(), django_auth], tags=["rig"])
+def session_status(request, session_id: str):
+    s = get_object_or_404(_sessions_for(request).select_related("rig"), uid=_uuid(session_id))
+    return _session_out(s)
+
+
+@api.get("/jobs/{job_id}", auth=[RigKeyAuth(), django_auth], tags=["rig"])
+def job_status(request, job_id: str):
+    """Stage, percent and error of a job (poll this)."""
+    return _job_out(get_object_or_404(_jobs_for(request), uid=_uuid(job_id)))
+
+
+@api.get("/jobs/{job_id}/files/{name}", auth=[RigKeyAuth(), django_auth], tags=["rig"])
+def job_file(request, job_id: str, name: str):
+    """Download a result: ``torso.ply``, ``torso-mesh.ply``, ``report.json`` or ``calibration.json``."""
+    job = get_object_or_404(_jobs_for(request), uid=_uuid(job_id))
+    field = None
+    if job.kind == Job.RECONSTRUCTION:
+        rec = Reconstruction.objects.filter(job=job).first()
+        if rec is not None:
+            field = {"torso.ply": rec.torso, "torso-mesh.ply": rec.mesh, "report.json": rec.report_file}.get(name)
+    elif name == "calibration.json" and hasattr(job, "calibration_result"):
+        field = job.calibration_result.file
+    if not field:
+        raise ApiError(404, f"job {job.uid} has no file {name!r} (yet)")
+    return FileResponse(default_storage.open(field.name, "rb"), as_attachment=True, filename=name)
+
+
+def _uuid(value: str):
+    import uuid
+
+    try:
+        return uuid.UUID(value)
+    except ValueError:
+        raise ApiError(404, f"{value!r} is not a session or job id") from None
+
+
+# --- staff endpoints ----------------------------------------------------------------------
+
+@api.post("/rigs", auth=django_auth, tags=["staff"])
+def register_rig(request, body: RigIn):
+    """Register a rig from its ``rig.json``; the answer holds its API key, shown this once."""
+    clinic = _member_clinic(request, body.clinic)
+    engine_rig = rig_from_dict(body.rig, "rig.json")
+    if Rig.objects.filter(serial=engine_rig.serial).exists():
+        raise ApiError(409, f"rig {engine_rig.serial} is already registered")
+    with transaction.atomic():
+        rig = Rig.objects.create(clinic=clinic, serial=engine_rig.serial, description=body.rig,
+                                 recalibration_interval_days=body.recalibration_interval_days,
+                                 poses_per_calibration=body.poses_per_calibration,
+                                 needs_recalibration=True, recalibration_reason="never calibrated")
+        sync_cameras(rig, engine_rig)
+        _, key = RigKey.issue(rig)
+    return _respond(request, {"serial": rig.serial, "key": key, "note": "store this key now: it is not shown again"}, 201)
+
+
+def sync_cameras(rig: Rig, engine_rig) -> None:
+    from .models import Camera
+
+    for arm in engine_rig.arms:
+        for pos, cam_id in enumerate(arm.cameras):
+            spec = engine_rig.cameras[cam_id]
+            Camera.objects.update_or_create(rig=rig, name=cam_id, defaults=dict(
+                arm=arm.id, position=pos, width=spec.width, height=spec.height, pixel_size_mm=spec.pixel_size_mm,
+                nominal_focal_mm=spec.nominal_focal_mm, model=spec.model or ""))
+
+
+@api.post("/rigs/{serial}/keys", auth=django_auth, tags=["staff"])
+def new_rig_key(request, serial: str):
+    rig = get_object_or_404(Rig.objects.filter(clinic__in=clinics_of(request.user)), serial=serial)
+    _member_clinic(request, rig.clinic_id)
+    _, key = RigKey.issue(rig)
+    return _respond(request, {"serial": rig.serial, "key": key, "note": "store this key now: it is not shown again"}, 201)
+
+
+@api.delete("/rigs/{serial}/keys/{prefix}", auth=django_auth, tags=["staff"])
+def revoke_rig_key(request, serial: str, prefix: str):
+    rig = get_object_or_404(Rig.objects.filter(clinic__in=clinics_of(request.user)), serial=serial)
+    _member_clinic(request, rig.clinic_id)
+    n = rig.keys.filter(prefix=prefix, revoked__isnull=True).update(revoked=timezone.now())
+    if not n:
+        raise ApiError(404, f"rig {serial} has no live key starting {prefix!r}")
+    return {"revoked": prefix}
+
+
+@api.post("/testfields", auth=django_auth, tags=["staff"])
+def register_testfield(request, body: TestFieldIn):
+    from recon_engine.formats import read_testfield
+
+    clinic = _member_clinic(request, body.clinic)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "testfield.json"
+        path.write_text(json.dumps(body.testfield), encoding="utf-8")
+        try:
+            tf = read_testfield(path)
+        except FormatError as exc:
+            raise ApiError(400, str(exc).replace(str(path), "testfield.json")) from None
+    obj, created = TestField.objects.get_or_create(clinic=clinic, name=tf.name,
+                                                   defaults={"description": body.testfield})
+    if not created and obj.description != body.testfield:
+        raise ApiError(409, f"test field {tf.name!r} is already registered with other coordinates")
+    return _respond(request, {"name": obj.name}, 201 if created else 200)
+
+
+@api.post("/patients", auth=django_auth, tags=["staff"])
+def create_patient(request, body: PatientIn):
+    clinic = _member_clinic(request, body.clinic, roles=(Member.ADMINISTRATOR, Member.TECHNICIAN, Member.CLINICIAN))
+    if Patient.objects.filter(clinic=clinic, identifier=body.identifier).exists():
+        raise ApiError(409, f"patient {body.identifier!r} already exists in {clinic.name}")
+    p = Patient.objects.create(clinic=clinic, identifier=body.identifier, name=body.name,
+                               date_of_birth=body.date_of_birth or None, sex=body.sex, notes=body.notes)
+    return _respond(request, {"id": p.pk, "identifier": p.identifier}, 201)
+
+
+@api.post("/patients/{patient_id}/visits", auth=django_auth, tags=["staff"])
+def create_visit(request, patient_id: int, body: VisitIn):
+    patient = get_object_or_404(Patient.objects.filter(clinic__in=clinics_of(request.user)), pk=patient_id)
+    v = Visit.objects.create(patient=patient, date=body.date or timezone.localdate(), clinician=request.user,
+                             reason=body.reason, notes=body.notes)
+    return _respond(request, {"id": v.pk, "date": str(v.date)}, 201)
+
+
+@api.post("/jobs/{job_id}/rerun", auth=django_auth, tags=["staff"])
+def rerun_job(request, job_id: str):
+    """Run a failed job again (its capture was kept), e.g. after the rig was calibrated."""
+    job = get_object_or_404(_jobs_for(request), uid=_uuid(job_id))
+    _member_clinic(request, job.rig.clinic_id)
+    try:
+        job = pipeline.rerun(job)
+    except pipeline.JobError as exc:
+        raise ApiError(409, str(exc)) from None
+    return _job_out(job)
+
+
+__all__ = ["api", "Clinic"]

@@ -1,0 +1,370 @@
+"""The work behind the Celery tasks: calibration, arms, registration, comparison.
+
+Every step claims its unit of work with a conditional UPDATE on the job's
+(or the arm's) row, so a task delivered twice does the work once, and records
+its durable state there: the broker only carries ids. Engine stages are
+called through ``recon_engine``'s public functions.
+"""
+
+import json
+import logging
+import shutil
+import tempfile
+import traceback
+from datetime import timedelta
+from pathlib import Path
+
+from django.conf import settings
+from django.core.files import File
+from django.core.files.base import ContentFile
+from django.core.files.storage import default_storage
+from django.db import transaction
+from django.db.models import F, Q
+from django.utils import timezone
+
+from recon_engine.formats import FormatError, read_calibration, read_capture, rig_from_dict
+
+from .models import ArmTask, Calibration, CaptureSession, Job, Reconstruction, StabilityCheck
+
+log = logging.getLogger(__name__)
+
+# where each stage's progress starts (percent)
+ARMS_START, REGISTRATION_START, COMPARISON_START = 5, 75, 92
+
+
+class JobError(Exception):
+    """A problem the technician can act on (bad capture, missing calibration, …)."""
+
+
+def _now():
+    return timezone.now()
+
+
+def _stale_before():
+    # a claim older than the hard time limit belongs to a worker that died
+    return _now() - timedelta(seconds=settings.CELERY_TASK_TIME_LIMIT)
+
+
+def _claimable():
+    return Q(state=Job.QUEUED) | Q(state=Job.RUNNING, claimed__lt=_stale_before())
+
+
+def set_progress(job_id, stage=None, percent=None):
+    fields = {}
+    if stage is not None:
+        fields["stage"] = stage
+    if percent is not None:
+        fields["percent"] = max(0, min(100, int(percent)))
+    Job.objects.filter(pk=job_id, state=Job.RUNNING).update(**fields)
+
+
+def fail(job_id, error: str):
+    log.warning("job %s failed: %s", job_id, error)
+    Job.objects.filter(pk=job_id).update(state=Job.FAILED, error=error[:5000], finished=_now())
+
+
+def _engine_error(exc: Exception) -> str:
+    if isinstance(exc, (FormatError, ValueError, JobError)):
+        return str(exc)
+    # an unexpected fault: keep the type and the last frames for whoever reads the job
+    tb = traceback.format_exception(type(exc), exc, exc.__traceback__)
+    return f"{type(exc).__name__}: {exc}\n" + "".join(tb[-4:])
+
+
+# --- dispatch ------------------------------------------------------------------
+
+def dispatch(job: Job):
+    """Start ``job`` once the surrounding transaction commits (never before its row is visible)."""
+    from . import tasks
+
+    task = tasks.run_calibration if job.kind == Job.CALIBRATION else tasks.start_reconstruction
+    transaction.on_commit(lambda: task.delay(job.pk))
+
+
+def rerun(job: Job) -> Job:
+    """Put a failed (or finished) job back in the queue; its capture was kept."""
+    with transaction.atomic():
+        n = Job.objects.filter(pk=job.pk).exclude(state=Job.RUNNING).update(
+            state=Job.QUEUED, stage="", percent=0, error="", finished=None, claimed=None)
+        if not n:
+            raise JobError(f"job {job.uid} is running; wait for it to finish")
+        job.arms.all().delete()
+        if job.kind == Job.RECONSTRUCTION:
+            Reconstruction.objects.filter(job=job).delete()
+            job.calibration = job.rig.current_calibration
+            job.save(update_fields=["calibration"])
+        job.refresh_from_db()
+        dispatch(job)
+    return job
+
+
+# --- files -----------------------------------------------------------------------
+
+def materialize(session: CaptureSession, dest: Path, cameras=None) -> Path:
+    """The session's received images as a capture bundle folder under ``dest`` (for the engine)."""
+    dest.mkdir(parents=True, exist_ok=True)
+    images = [im for im in session.images.all() if im.file and (cameras is None or im.camera in cameras)]
+    manifest = dict(session.manifest)
+    keep = {im.camera for im in images}
+    manifest["images"] = [e for e in session.manifest["images"] if e["camera"] in keep]
+    (dest / "capture.json").write_text(json.dumps(manifest), encoding="utf-8")
+    for im in images:
+        target = dest / im.file_name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with default_storage.open(im.file.name, "rb") as src, open(target, "wb") as out:
+            shutil.copyfileobj(src, out, 1 << 20)
+    return dest
+
+
+def _calibration_on_disk(calibration: Calibration, dest: Path):
+    path = dest / "calibration.json"
+    with default_storage.open(calibration.file.name, "rb") as src, open(path, "wb") as out:
+        shutil.copyfileobj(src, out)
+    return read_calibration(path)
+
+
+def _workdir():
+    root = Path(settings.WORK_DIR)
+    root.mkdir(parents=True, exist_ok=True)
+    return tempfile.TemporaryDirectory(dir=root)
+
+
+# --- calibration --------------------------------------------------------------------
+
+def run_calibration(job_id: int) -> str:
+    from recon_engine.calibration import calibrate
+    from recon_engine.formats import read_testfield, write_calibration, write_json
+    from recon_engine.stability import compare_calibrations
+
+    n = Job.objects.filter(Q(pk=job_id, kind=Job.CALIBRATION) & _claimable()).update(
+        state=Job.RUNNING, stage="measuring targets", percent=5, claimed=_now(), started=_now(),
+        attempt=F("attempt") + 1)
+    if not n:
+        return "not claimed"
+    job = Job.objects.select_related("rig").get(pk=job_id)
+    rig = rig_from_dict(job.rig.description, f"rig {job.rig.serial}")
+    sessions = list(job.sessions.select_related("testfield").order_by("pose", "id"))
+    try:
+        with _workdir() as tmp:
+            tmp = Path(tmp)
+            if not sessions:
+                raise JobError("the calibration job has no test-field sessions")
+            testfield = sessions[0].testfield
+            tf_path = tmp / "testfield.json"
+            tf_path.write_text(json.dumps(testfield.description), encoding="utf-8")
+            tf = read_testfield(tf_path)
+            captures = [read_capture(materialize(s, tmp / f"pose{s.pose}-{s.pk}"), rig) for s in sessions]
+            set_progress(job_id, "bundle adjustment", 20)
+            calib, report = calibrate(captures, rig, tf)
+            set_progress(job_id, "stability checks", 85)
+            out = tmp / "calibration.json"
+            write_calibration(out, calib)
+            figures = report.to_dict()
+            with open(out, "rb") as fh:
+                content = fh.read()
+        sigmas = calib.extra.get("sigmas", {})
+        with transaction.atomic():
+            record = Calibration.objects.create(rig=job.rig, job=job, figures=figures, sigmas=sigmas,
+                                                calibrated_at=_now())
+            record.file.save(f"{job.rig.serial}-{job.uid}.json", ContentFile(content), save=True)
+            previous = (Calibration.objects.filter(rig=job.rig, status=Calibration.SUCCEEDED)
+                        .exclude(pk=record.pk).order_by("-calibrated_at", "-id").first())
+            unstable = []
+            if previous is not None:
+                with _workdir() as tmp2:
+                    before = _calibration_on_disk(previous, Path(tmp2))
+                result = compare_calibrations(before, calib)
+                cameras = {c.name: c for c in job.rig.cameras.all()}
+                for cam_id, m in result["cameras"].items():
+                    if cam_id not in cameras:
+                        continue
+                    thr = m["threshold_px"]
+                    StabilityCheck.objects.get_or_create(
+                        camera=cameras[cam_id], calibration=record, reference=previous,
+                        defaults=dict(zrot_px=m["zrot_px"], rot_px=m["rot_px"], spr_px=m["spr_px"],
+                                      threshold_px=max(thr.values()) if isinstance(thr, dict) else thr,
+                                      stable=m["stable"]))
+                    if not m["stable"]:
+                        unstable.append(cam_id)
+            rig = job.rig
+            if unstable:
+                rig.needs_recalibration = True
+                rig.recalibration_reason = f"cameras failed the stability check: {', '.join(unstable)}"
+            else:
+                rig.needs_recalibration = False
+                rig.recalibration_reason = ""
+            rig.save(update_fields=["needs_recalibration", "recalibration_reason"])
+            Job.objects.filter(pk=job_id).update(state=Job.SUCCEEDED, stage="done", percent=100, finished=_now())
+        return "succeeded"
+    except TRANSIENT:
+        Job.objects.filter(pk=job_id).update(state=Job.QUEUED, claimed=None)
+        raise
+    except Exception as exc:  # the engine's error becomes the job's, for the technician
+        fail(job_id, f"calibration: {_engine_error(exc)}")
+        return "failed"
+
+
+# --- reconstruction -------------------------------------------------------------------
+
+def start_reconstruction(job_id: int) -> list:
+    """Claim the job and create its arm rows; the arms to dispatch (empty when not claimed)."""
+    n = Job.objects.filter(Q(pk=job_id, kind=Job.RECONSTRUCTION) & _claimable()).update(
+        state=Job.RUNNING, stage="arms", percent=ARMS_START, claimed=_now(), started=_now(),
+        attempt=F("attempt") + 1)
+    if not n:
+        return []
+    job = Job.objects.select_related("rig", "session", "calibration").get(pk=job_id)
+    if job.calibration is None:
+        fail(job_id, f"rig {job.rig.serial} has no calibration yet: upload its test-field captures, "
+                     "then re-run this job")
+        return []
+    rig = rig_from_dict(job.rig.description, f"rig {job.rig.serial}")
+    arms = [a.id for a in rig.arms]
+    job.arms.exclude(state=Job.SUCCEEDED).update(state=Job.QUEUED, claimed=None, error="")
+    for arm in arms:
+        ArmTask.objects.get_or_create(job=job, arm=arm)
+    return [a.arm for a in job.arms.exclude(state=Job.SUCCEEDED)]
+
+
+def reconstruct_arm(job_id: int, arm: str) -> str:
+    """One arm of a reconstruction job; the last arm to finish hands over to the registration."""
+    from recon_engine.reconstruction import reconstruct_arm as engine_reconstruct_arm
+    from recon_engine.results import arm_surface_bytes
+
+    n = ArmTask.objects.filter(Q(job_id=job_id, arm=arm, job__state=Job.RUNNING)
+                               & (Q(state=Job.QUEUED) | Q(state=Job.RUNNING, claimed__lt=_stale_before()))
+                               ).update(state=Job.RUNNING, claimed=_now())
+    if not n:
+        return "not claimed"
+    task = ArmTask.objects.select_related("job__rig", "job__session", "job__calibration").get(job_id=job_id, arm=arm)
+    job = task.job
+    try:
+        rig = rig_from_dict(job.rig.description, f"rig {job.rig.serial}")
+        cameras = next(a.cameras for a in rig.arms if a.id == arm)
+        with _workdir() as tmp:
+            tmp = Path(tmp)
+            calibration = _calibration_on_disk(job.calibration, tmp)
+            capture = read_capture(materialize(job.session, tmp / "capture", cameras), rig)
+            surface, report = engine_reconstruct_arm(capture, rig, calibration, arm)
+        task.surface.save(f"arm-{arm}.npz", ContentFile(arm_surface_bytes(surface)), save=False)
+        task.report, task.state = report, Job.SUCCEEDED
+        task.save(update_fields=["surface", "report", "state"])
+    except TRANSIENT:
+        ArmTask.objects.filter(pk=task.pk).update(state=Job.QUEUED, claimed=None)
+        raise
+    except Exception as exc:
+        ArmTask.objects.filter(pk=task.pk).update(state=Job.FAILED, error=_engine_error(exc))
+    done = job.arms.filter(state__in=[Job.SUCCEEDED, Job.FAILED]).count()
+    total = job.arms.count()
+    set_progress(job_id, percent=ARMS_START + (REGISTRATION_START - ARMS_START) * done / max(total, 1))
+    if done == total and Job.objects.filter(pk=job_id, state=Job.RUNNING, stage="arms").update(
+            stage="registration queued", percent=REGISTRATION_START):
+        return "arms done"
+    return "arm done"
+
+
+def register(job_id: int) -> str:
+    """Registration of the arm surfaces, the torso files, then comparison with earlier visits."""
+    from recon_engine.reconstruction import register_arms
+    from recon_engine.results import read_arm_surface, write_torso
+
+    if not Job.objects.filter(pk=job_id, state=Job.RUNNING, stage="registration queued").update(
+            stage="registration", claimed=_now()):
+        return "not claimed"
+    job = Job.objects.select_related("rig", "session", "calibration").get(pk=job_id)
+    try:
+        rig = rig_from_dict(job.rig.description, f"rig {job.rig.serial}")
+        surfaces, reports, failed = {}, {}, {}
+        for task in job.arms.all():
+            if task.state == Job.SUCCEEDED:
+                with default_storage.open(task.surface.name, "rb") as fh:
+                    surfaces[task.arm] = read_arm_surface(fh)
+                reports[task.arm] = task.report
+            else:
+                failed[task.arm] = task.error or "not reconstructed"
+        with _workdir() as tmp:
+            tmp = Path(tmp)
+            calibration = _calibration_on_disk(job.calibration, tmp)
+            result = register_arms(surfaces, reports, failed, rig, calibration)
+            paths = write_torso(tmp / "out", result)
+            rec = Reconstruction(job=job, session=job.session, report=result["report"],
+                                 status=result["report"]["status"], points=result["report"]["points"])
+            for field, path in zip(("torso", "mesh", "report_file"), paths):
+                with open(path, "rb") as fh:
+                    getattr(rec, field).save(path.name, File(fh), save=False)
+            rec.save()
+        if rec.status == "failed":
+            # the files stay for inspection, but the torso is not presented as good
+            fail(job_id, "registration: " + "; ".join(result["report"]["problems"]))
+            return "failed"
+        set_progress(job_id, "comparison", COMPARISON_START)
+        compare_with_earlier(rec)
+        Job.objects.filter(pk=job_id, state=Job.RUNNING).update(
+            state=Job.SUCCEEDED, stage="done", percent=100, finished=_now())
+        return "succeeded"
+    except TRANSIENT:
+        Job.objects.filter(pk=job_id).update(stage="registration queued")
+        raise
+    except Exception as exc:
+        fail(job_id, f"registration: {_engine_error(exc)}")
+        return "failed"
+
+
+def earlier_reconstructions(rec: Reconstruction):
+    """The patient's reconstructions from earlier visits (good ones, latest per visit)."""
+    visit = rec.session.visit
+    if visit is None:
+        return []
+    rows = (Reconstruction.objects.filter(session__visit__patient=visit.patient, status__in=["ok", "partial"],
+                                          job__state=Job.SUCCEEDED)
+            .filter(Q(session__visit__date__lt=visit.date)
+                    | Q(session__visit__date=visit.date, session__visit_id__lt=visit.id))
+            .select_related("session__visit").order_by("-created"))
+    latest = {}
+    for r in rows:
+        latest.setdefault(r.session.visit_id, r)
+    return list(latest.values())
+
+
+def compare_with_earlier(rec: Reconstruction) -> list:
+    """The later torso against every earlier visit's (the analysis step)."""
+    from .analysis_step import compare_reconstructions
+
+    return [compare_reconstructions(earlier, rec) for earlier in earlier_reconstructions(rec)]
+
+
+# --- scheduled work ---------------------------------------------------------------
+
+def flag_rigs_for_recalibration(now=None) -> list:
+    """Rigs whose last calibration is older than their interval (or that have none) are flagged.
+
+    Rigs whose cameras failed a stability check were flagged when it ran.
+    Returns the serials newly flagged.
+    """
+    from .models import Rig
+
+    now = now or _now()
+    flagged = []
+    for rig in Rig.objects.filter(needs_recalibration=False):
+        last = rig.current_calibration
+        if last is None:
+            reason = "never calibrated"
+        elif last.calibrated_at < now - timedelta(days=rig.recalibration_interval_days):
+            age = (now - last.calibrated_at).days
+            reason = f"last calibration is {age} days old (interval {rig.recalibration_interval_days} days)"
+        else:
+            continue
+        if Rig.objects.filter(pk=rig.pk, needs_recalibration=False).update(
+                needs_recalibration=True, recalibration_reason=reason):
+            flagged.append(rig.serial)
+    return flagged
+
+
+def _transient_errors():
+    from django.db import InterfaceError, OperationalError
+
+    return (OperationalError, InterfaceError, ConnectionError, TimeoutError)
+
+
+TRANSIENT = _transient_errors()
+
