@@ -59,6 +59,7 @@ class IndicesConfig:
     spine_depth_mm: float = 45.0  # skin to vertebral body centre at the symmetry line (adolescent, thoracic):
     # the spine midline is the symmetry line moved by this depth times the sine of the surface rotation
     hump_range_mm: tuple = (20.0, 100.0)  # distances from the symmetry line where the hump is measured
+    yaw_band: float = 0.12  # the patient's yaw: mirror plane of the trunk within this fraction of SP and below VP
     mirror_band: float = 0.0  # asymmetry: trunk between SP and VP, extended by this fraction either end
     regions: tuple = (("lumbar", 0.0, 0.4), ("thoracolumbar", 0.4, 0.6), ("thoracic", 0.6, 1.0))  # SP=0, VP=1
 

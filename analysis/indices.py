@@ -106,6 +106,26 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
     dmap = depth_map(P, N, ic)
     back = back_points(P, N, ic)
     auto = detect_landmarks(P, back, dmap, ic)
+    # the yaw again, from the trunk's ends only (pelvis at SP, shoulders at VP): a scoliotic curve turns the
+    # sections between them and would tilt a whole-trunk mirror plane towards its own rotation
+    z_sp, z_vp = auto["sacral_point"][2], auto["vertebra_prominens"][2]
+    if np.isfinite(z_sp) and np.isfinite(z_vp) and z_vp > z_sp + 100:
+        L = z_vp - z_sp
+        ends = trunk_mask(P, z_sp - ic.yaw_band * L, z_sp + ic.yaw_band * L, ic) | \
+            trunk_mask(P, z_vp - ic.yaw_band * L, z_vp, ic)
+        if ends.sum() > 500:
+            try:
+                sym2 = symmetry_plane(torso, frame, rc, mask=ends, index=index)
+                f2 = sym2["frame"]
+                if np.degrees(np.arccos(np.clip(f2.R[1] @ frame.R[1], -1, 1))) < 10:
+                    frame = f2
+                    frame.origin[2] = 0.0
+                    P, N = frame.to_patient(torso.points), frame.rotate(torso.normals)
+                    dmap = depth_map(P, N, ic)
+                    back = back_points(P, N, ic)
+                    auto = detect_landmarks(P, back, dmap, ic)
+            except ValueError:
+                pass
     lm = {k: auto[k] for k in LANDMARKS}
     source = {k: "auto" for k in LANDMARKS}
     for k, v in (landmarks or {}).items():

@@ -86,9 +86,9 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, region: np.ndarray
 def synthetic_back(rotation_deg: float = 0.0, lateral_mm: float = 0.0, hump_mm: float = 0.0, apex: float = 0.6,
                    imbalance_mm: float = 0.0, length_mm: float = 480.0, z_sp_mm: float = 850.0, spacing_mm: float = 3.0,
                    noise_mm: float = 0.0, seed: int = 0):
-    """An elliptic-cylinder trunk with a known curve: (Torso, truth dict).
+    """A superelliptic trunk with a known curve: (Torso, truth dict).
 
-    Each horizontal section (half axes 150 mm across, 100 mm deep, a spinal groove
+    Each horizontal section (superellipse of exponent 4, half axes 150 mm across, 100 mm deep, a spinal groove
     on the back) is shifted towards the patient's right by ``lateral_mm·b(s)`` plus
     ``imbalance_mm·s`` and turned about a spine 45 mm under the back skin by
     ``rotation_deg·b(s)`` (positive: the right back comes backwards), with a hump of
@@ -107,14 +107,23 @@ def synthetic_back(rotation_deg: float = 0.0, lateral_mm: float = 0.0, hump_mm: 
         b = np.cos(0.5 * np.pi * np.clip(np.where(s < apex, (apex - s) / apex, (s - apex) / (1 - apex)), 0, 1)) ** 2
         b = np.where((s < 0) | (s > 1), 0.0, b)
         # section shape: trunk, narrowing into the neck above VP, a sacral bulge below SP
-        neck = np.clip((s - 1.0) / 0.06, 0, 1)
-        a_half = 150.0 * (1 - neck) + 55.0 * neck
-        d_half = 100.0 * (1 - neck) + 55.0 * neck
-        bulge = 12.0 * np.exp(-0.5 * ((s + 0.02) / 0.06) ** 2) - 8.0 * np.exp(-0.5 * ((s - 0.3) / 0.15) ** 2)
-        n_around = max(60, int(2 * np.pi * a_half / spacing_mm))
-        th = np.linspace(0, 2 * np.pi, n_around, endpoint=False)
-        x = a_half * np.cos(th)
-        y = d_half * np.sin(th)
+        # the trunk narrows into the neck: half the shoulders' width exactly at VP (s = 1)
+        neck = np.clip((s - 1.0) / 0.08 + 0.75, 0, 1)
+        a_half = 150.0 * (1 - neck) + 50.0 * neck
+        d_half = 100.0 * (1 - neck) + 50.0 * neck
+        # the sacral prominence at SP, the lumbar lordosis above it
+        bulge = 12.0 * np.exp(-0.5 * (s / 0.06) ** 2) - 8.0 * np.exp(-0.5 * ((s - 0.3) / 0.15) ** 2)
+        # a superelliptic section (exponent 4): a broad, flat back as the MakeHuman body has;
+        # sampled evenly across (x) on the back and the front, and evenly up (y) on the flanks
+        n_x = max(40, int(2 * a_half / spacing_mm))
+        xa = np.linspace(-a_half, a_half, n_x)
+        ya = d_half * np.clip(1 - np.abs(xa / a_half) ** 4, 0, None) ** 0.25
+        yf = np.linspace(-0.8 * d_half, 0.8 * d_half, max(10, int(1.6 * d_half / spacing_mm)))
+        xf = a_half * np.clip(1 - np.abs(yf / d_half) ** 4, 0, None) ** 0.25
+        x = np.concatenate([xa, xa, xf, -xf])
+        y = np.concatenate([ya, -ya, yf, yf])
+        th = np.arctan2(y, x)
+        n_around = len(x)
         back = np.clip(np.sin(th), 0, None)
         y = y + back ** 2 * (bulge - 4.0 * np.exp(-0.5 * (x / 14.0) ** 2))
         # hump on the right back (-X), 70 mm from the spine

