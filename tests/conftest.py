@@ -75,6 +75,13 @@ def torso_scenario(tmp_path_factory):
 
 # --- the clinic service: a few named users, one with no access ---------------------
 
+@pytest.fixture(autouse=True)
+def _media_in_tmp(settings, tmp_path):
+    """Each test's stored files in its own folder (never the repository's var/)."""
+    settings.STORAGES = {**settings.STORAGES, "default": {
+        "BACKEND": "django.core.files.storage.FileSystemStorage", "OPTIONS": {"location": str(tmp_path / "media")}}}
+    settings.WORK_DIR = str(tmp_path / "work")
+
 @pytest.fixture
 def clinic(db):
     from clinic.models import Clinic
