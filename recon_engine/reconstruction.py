@@ -10,7 +10,7 @@ multi-ray intersection (``multiview``) and the TIN surface (``surface``).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -21,7 +21,7 @@ from .epipolar import rig_centre, subject_depth_bounds
 from .features import local_contrast
 from .formats import Calibration, Capture, FormatError, Rig, load_image
 from .multiview import IntersectionConfig, intersect
-from .registration import ICPatchConfig, Transform, chain_initial, multi_surface_registration, pair_fit
+from .registration import ICPatchConfig, Transform, chain_initial, multi_surface_registration, pair_fit, weak_arms
 from .surface import PointSurface, make_surface, off_surface, small_components, subset
 from .tracking import TrackingConfig, track_images
 
@@ -249,22 +249,47 @@ def register_arms(surfaces: dict, arm_reports: dict, failed: dict, rig: Rig, cal
     t1 = time.perf_counter()
     T, pairwise, closing = ({reference: Transform.identity()}, [], None)
     multi = {"transforms": T, "pairs": [], "sigmas": {}, "iterations": 0, "converged": True}
-    problems = []
+    problems, warnings, weak = [], [], {}
+
+    def register(icfg):
+        progress("pair-wise ICPatch around the rig")
+        T, pairwise = chain_initial(surfaces, order, reference, icfg, progress=progress)
+        unplaced = [a for a in order if a not in T]
+        if unplaced:
+            raise ValueError(f"arms {', '.join(unplaced)} overlap no placed neighbour under their "
+                             "nominal placement")
+        closing = None
+        if len(order) > 2:
+            # what the chain of pair-wise results leaves at the pair that closes the circle
+            last = order[order.index(reference) - 1]
+            closing = {"a": last, "b": reference,
+                       **pair_fit(surfaces[last], surfaces[reference], T[last], T[reference], 2.0, icfg)}
+        progress("multiple surface registration")
+        multi = multi_surface_registration(surfaces, order, reference, T, icfg, progress=progress)
+        return multi, pairwise, closing
+
     if len(order) > 1:
         try:
-            progress("pair-wise ICPatch around the rig")
-            T, pairwise = chain_initial(surfaces, order, reference, cfg.icpatch, progress=progress)
-            unplaced = [a for a in order if a not in T]
-            if unplaced:
-                raise ValueError(f"arms {', '.join(unplaced)} overlap no placed neighbour under their "
-                                 "nominal placement")
-            if len(order) > 2:
-                # what the chain of pair-wise results leaves at the pair that closes the circle
-                last = order[order.index(reference) - 1]
-                closing = {"a": last, "b": reference,
-                           **pair_fit(surfaces[last], surfaces[reference], T[last], T[reference], 2.0, cfg.icpatch)}
-            progress("multiple surface registration")
-            multi = multi_surface_registration(surfaces, order, reference, T, cfg.icpatch, progress=progress)
+            multi, pairwise, closing = register(cfg.icpatch)
+            weak = weak_arms(multi["strength"], surfaces, cfg.icpatch)
+            if weak and cfg.icpatch.max_patch_edge is not None:
+                # the compact patches may have thinned an overlap that held these arms: all patches instead
+                progress(f"arms {', '.join(weak)} weakly held; registering again with all patches")
+                try:
+                    retry = register(replace(cfg.icpatch, max_patch_edge=None))
+                    weak_retry = weak_arms(retry[0]["strength"], surfaces, cfg.icpatch)
+                except (ValueError, np.linalg.LinAlgError) as exc:
+                    progress(f"registration with all patches failed: {exc}")
+                    retry, weak_retry = None, weak
+
+                def worst(m, w):
+                    return max((m["strength"][a]["position_sigma_mm"] for a in w), default=0.0)
+
+                if retry and (len(weak_retry) < len(weak) or (len(weak_retry) == len(weak)
+                                                              and worst(retry[0], weak_retry) < worst(multi, weak))):
+                    warnings.append(f"with compact patches only, arms {', '.join(weak)} were weakly held: "
+                                    "registered with all patches")
+                    (multi, pairwise, closing), weak = retry, weak_retry
             T = multi["transforms"]
         except (ValueError, np.linalg.LinAlgError) as exc:
             # the arms stay where the calibration put them; the torso is marked as failed below
@@ -273,7 +298,8 @@ def register_arms(surfaces: dict, arm_reports: dict, failed: dict, rig: Rig, cal
     t2 = time.perf_counter()
     if not multi["converged"]:
         problems.append(f"the multiple registration did not converge in {multi['iterations']} iterations")
-    warnings = []
+    # geometric strength: an arm the overlaps leave free to slide fits its neighbours however far it slid
+    problems.extend(weak.values())
     for p in multi["pairs"]:
         if p["pairs"] < cfg.icpatch.min_pairs:
             warnings.append(f"arms {p['a']} and {p['b']} barely overlap: {p['pairs']} point-patch pairs "
@@ -314,6 +340,7 @@ def register_arms(surfaces: dict, arm_reports: dict, failed: dict, rig: Rig, cal
             "closing_pair_after_pairwise_only": closing,
             "transforms": {a: T[a].to_dict() for a in order},
             "sigmas": multi["sigmas"],
+            "strength": multi.get("strength", {}),
             "iterations": multi["iterations"], "converged": multi["converged"],
         },
         "arms": arm_reports, "failed_arms": failed,

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
+from scipy.spatial import cKDTree
 
 from .bundle import rodrigues
 from .surface import PointSurface
@@ -43,12 +44,24 @@ class ICPatchConfig:
     # ICPatch B->A from 0.030 to 0.013 mm against the truth, but at the tiny preset it leaves too little
     # overlap and a weakly held arm slid off: not the default until registration strength is checked
     max_patch_edge: float | None = None
+    # a pair keeps the compact patches only if they give at least this share of the pairs all patches give
+    # and at least min_compact_pairs; otherwise its overlap lies where only long patches are, or it is weak
+    # anyway (tiny preset: B-C 26 pairs, 20 compact, which fell below min_pairs in the adjustment and let
+    # arms C and D slide 7 mm): holding the arm matters more than the long patches' bias, so it uses all
+    min_compact_share: float = 0.5
+    min_compact_pairs: int = 100
     symmetric: bool = False  # observe each pair in both directions too (no gain measured at paper scale)
     freeze_after: int = 12  # iterations with fresh point-patch pairs; then they are kept until convergence
     negligible_sigma: float = 0.01  # corrections below this many of their standard deviations have vanished
     overlap_distance_mm: float = 3.0  # a point over a patch interior this close is in the overlap
     min_pairs: int = 20  # fewer point-patch pairs: the surfaces barely overlap, the result is not trusted
     max_average_distance_mm: float = 0.5  # a pair fitting worse than this (or 3x the points' precision) failed
+    # an arm is not held when the adjustment leaves any point of its surface less certain than this many
+    # times its points' median precision (1 sigma, weakest direction; see arm_strength). Measured (visit0-a,
+    # position sigma / point precision): tiny preset 0.55-0.6 for B, 2.8-3.4 for the weakly overlapping C
+    # and D (their true error 1.1-1.35 mm against 0.44 mm points), and 11-15 where C and D slid 7-76 mm
+    # after the weak pair B-C dropped out; paper scale: see the limit's comment in docs/benchmarks.md
+    max_position_sigma_factor: float = 6.0
 
 
 @dataclass
@@ -123,6 +136,32 @@ class PatchIndex:
         return pid, inside, self.normals[pid], self.anchor[pid]
 
 
+def patch_indices(surfaces: dict, cfg: ICPatchConfig) -> dict:
+    """Per arm ``(all patches, compact patches or None)``: the two patch sets a pair can register against."""
+    return {a: (PatchIndex(s), PatchIndex(s, cfg.max_patch_edge) if cfg.max_patch_edge is not None else None)
+            for a, s in surfaces.items()}
+
+
+def choose_patches(points, normals, indices: tuple, transform: Transform, max_distance: float,
+                   cfg: ICPatchConfig) -> tuple:
+    """The patch set a pair registers against: the compact patches, unless they leave the overlap weak.
+
+    Long patches are biased chords, but where two arms overlap only at the
+    oblique periphery of the fixed one they are all there is: dropping them
+    would leave the pair (and an arm it holds) without support. So the compact
+    set is used when it gives at least ``min_compact_share`` of the pairs that
+    all patches give, and at least ``min_compact_pairs``. Returns ``(index, "compact" or "all")``.
+    """
+    full, compact = indices
+    if compact is None:
+        return full, "all"
+    n_full = len(correspondences(points, normals, full, transform, max_distance, cfg)[0])
+    n_compact = len(correspondences(points, normals, compact, transform, max_distance, cfg)[0])
+    if n_compact >= max(cfg.min_pairs, cfg.min_compact_pairs, cfg.min_compact_share * n_full):
+        return compact, "compact"
+    return full, "all"
+
+
 def correspondences(points, normals, index: PatchIndex, transform: Transform, max_distance: float,
                     cfg: ICPatchConfig):
     """Accepted point–patch pairs under ``transform``: (point ids, patch normal, patch vertex, normal distance)."""
@@ -147,7 +186,9 @@ def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None
     """
     cfg = cfg or ICPatchConfig()
     T = initial or Transform.identity()
-    index = index or PatchIndex(fixed, cfg.max_patch_edge)
+    if index is None:
+        index = choose_patches(moving.points, moving.normals, patch_indices({"f": fixed}, cfg)["f"], T,
+                               cfg.initial_distance_mm, cfg)[0]
     X = moving.points
     centre = X.mean(axis=0)
     dist = cfg.initial_distance_mm
@@ -200,6 +241,15 @@ def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None
             "acceptance_distance_mm": float(dist), "iterations": it, "converged": converged}
 
 
+def smooth_normals(surface: PointSurface, k: int = 30) -> np.ndarray:
+    """Unit normals of the skin around each point: the plane of its ``k`` nearest points, turned like the point's."""
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(surface.points))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=min(k, max(len(surface.points) - 1, 3))))
+    n = np.asarray(pcd.normals).copy()
+    n[np.sum(n * surface.normals, axis=1) < 0] *= -1
+    return n
+
+
 def _subsample(n: int, max_points: int, seed: int = 0) -> np.ndarray:
     if n <= max_points:
         return np.arange(n)
@@ -227,12 +277,12 @@ def chain_initial(surfaces: dict, order: list, reference: str, cfg: ICPatchConfi
     """
     cfg = cfg or ICPatchConfig()
     start = {a: (initial or {}).get(a, Transform.identity()) for a in order}
-    index = {a: PatchIndex(surfaces[a], cfg.max_patch_edge) for a in order}
+    indices = patch_indices({a: surfaces[a] for a in order}, cfg)
     overlap = {}
     for a, b in neighbour_pairs(order):
         for m, f in ((a, b), (b, a)):
             rel = start[f].inverse().compose(start[m])
-            overlap[(m, f)] = len(correspondences(surfaces[m].points, surfaces[m].normals, index[f], rel,
+            overlap[(m, f)] = len(correspondences(surfaces[m].points, surfaces[m].normals, indices[f][0], rel,
                                                   cfg.initial_distance_mm, cfg)[0])
     T = {reference: Transform.identity()}
     results = []
@@ -243,9 +293,11 @@ def chain_initial(surfaces: dict, order: list, reference: str, cfg: ICPatchConfi
             break
         n, arm, prev = max(cand)
         local = start[prev].inverse().compose(start[arm])  # the nominal placement, in prev's frame
-        res = icpatch(surfaces[arm], surfaces[prev], local, cfg, index=index[prev])
+        index, which = choose_patches(surfaces[arm].points, surfaces[arm].normals, indices[prev], local,
+                                      cfg.initial_distance_mm, cfg)
+        res = icpatch(surfaces[arm], surfaces[prev], local, cfg, index=index)
         T[arm] = T[prev].compose(res["transform"])
-        results.append({"a": arm, "b": prev, **{k: v for k, v in res.items() if k != "transform"}})
+        results.append({"a": arm, "b": prev, "patches": which, **{k: v for k, v in res.items() if k != "transform"}})
         progress(f"ICPatch {arm} to {prev}: {res['average_normal_distance_mm']:.3f} mm, "
                  f"{res['matched_fraction']:.0%} matched")
     return T, results
@@ -274,13 +326,20 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         # both directions of every pair: a surface's points lie off the other's chords (the patches) by
         # the curvature's sagitta, the same way in both directions, so the two bias the solution oppositely
         pairs = pairs + [(b, a) for a, b in pairs]
-    index = {a: PatchIndex(surfaces[a], cfg.max_patch_edge) for a in arms}
+    indices = patch_indices({a: surfaces[a] for a in arms}, cfg)
     sample = {(a, b): _subsample(len(surfaces[a].points), max_points_per_pair, seed=k)
               for k, (a, b) in enumerate(pairs)}
     T = {a: initial.get(a, Transform.identity()) for a in arms}
     T[reference] = Transform.identity()
     # start from the pair-wise solution: its acceptance distances are already tight
     dist = {p: max(cfg.min_distance_mm, 2.0) for p in pairs}
+    # each pair's patch set, chosen once at the start (see choose_patches)
+    index, which = {}, {}
+    for (a, b) in pairs:
+        idx_all = sample[(a, b)]
+        index[(a, b)], which[(a, b)] = choose_patches(
+            surfaces[a].points[idx_all], surfaces[a].normals[idx_all], indices[b],
+            T[b].inverse().compose(T[a]), dist[(a, b)], cfg)
     converged = False
     it = 0
     frozen = {}
@@ -296,7 +355,8 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             X = surfaces[a].points[idx_all]
             rel = T[b].inverse().compose(T[a])
             if it <= cfg.freeze_after:
-                frozen[(a, b)] = correspondences(X, surfaces[a].normals[idx_all], index[b], rel, dist[(a, b)], cfg)
+                frozen[(a, b)] = correspondences(X, surfaces[a].normals[idx_all], index[(a, b)], rel, dist[(a, b)],
+                                                 cfg)
             # after a few iterations the pairs are kept, so the adjustment converges instead of
             # jittering as points at the acceptance limit come and go
             idx, n_loc, p0_loc, _ = frozen[(a, b)]
@@ -363,13 +423,46 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
     cov = s0 ** 2 * np.linalg.inv(N)
     names = ("scale", "omega_rad", "phi_rad", "kappa_rad", "tx_mm", "ty_mm", "tz_mm")
     sig = {a: dict(zip(names, map(float, np.sqrt(np.diag(cov)[col[a]:col[a] + 7])))) for a in free}
+    # geometric strength: the same normal equations with the skin's smoothed normals instead of each patch's.
+    # A patch's normal tilts with its vertices' noise (tiny preset: by ~0.1 rad), and those tilts seem to hold
+    # an arm even along a direction the skin leaves free (a plain cylinder's axis): the formal sigmas above
+    # said 0.03 mm for an arm on plain-cylinder overlaps that slid 0.4 mm. Smoothed normals do not.
+    smooth = {a: smooth_normals(surfaces[a]) for a in arms}
+    trees = {a: cKDTree(surfaces[a].points) for a in arms}
+    centres = {a: T[a].apply(surfaces[a].points.mean(axis=0)) for a in arms}
+    Ng = np.zeros((n_par, n_par))
+    for (a, b) in pairs:
+        if (a, b) in weak:
+            continue
+        idx, n_loc, p0_loc, _ = frozen[(a, b)]
+        X = surfaces[a].points[sample[(a, b)][idx]]
+        rel = T[b].inverse().compose(T[a])
+        xb = rel.apply(X)
+        foot_b = xb - np.sum((xb - p0_loc) * n_loc, axis=1)[:, None] * n_loc
+        n = T[b].rotate(smooth[b][trees[b].query(foot_b)[1]])
+        x, foot = T[a].apply(X), T[b].apply(foot_b)
+        blocks = []
+        if a in col:
+            Ya = x - centres[a]
+            blocks.append((col[a], np.column_stack([np.sum(n * Ya, axis=1), np.cross(Ya, n), n])))
+        if b in col:
+            Yb = foot - centres[b]
+            blocks.append((col[b], -np.column_stack([np.sum(n * Yb, axis=1), np.cross(Yb, n), n])))
+        for ca, Ja in blocks:
+            for cb, Jb in blocks:
+                Ng[ca:ca + 7, cb:cb + 7] += Ja.T @ Jb
+    for a in free:
+        Ng[col[a], col[a]] += scale_weight
+    cov_g = s0 ** 2 * np.linalg.pinv(Ng)
+    strength = {a: arm_strength(cov_g[col[a]:col[a] + 7, col[a]:col[a] + 7], T[a].apply(surfaces[a].points),
+                                centres[a]) for a in free}
     pair_rows = []
     loose = ICPatchConfig(max_normal_angle_deg=90.0, edge_margin=cfg.edge_margin)
     for (a, b), (d, k, n_all) in stats.items():
         # the overlap: points over the interior of a patch of b within a generous distance
         idx_all = sample[(a, b)]
         rel = T[b].inverse().compose(T[a])
-        over_idx = correspondences(surfaces[a].points[idx_all], None, index[b], rel, cfg.overlap_distance_mm,
+        over_idx = correspondences(surfaces[a].points[idx_all], None, index[(a, b)], rel, cfg.overlap_distance_mm,
                                    loose)[0]
         over = len(over_idx)
         matched_in_overlap = int(np.isin(frozen[(a, b)][0], over_idx).sum())
@@ -378,13 +471,53 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
                           "matched_fraction": float(k / max(n_all, 1)),
                           "overlap_fraction": float(over / max(n_all, 1)),
                           "overlap_matched_fraction": float(matched_in_overlap / over) if over else 0.0,
-                          "pairs": int(k), "acceptance_distance_mm": float(dist[(a, b)])})
+                          "pairs": int(k), "acceptance_distance_mm": float(dist[(a, b)]),
+                          "patches": which[(a, b)]})
         if k:
             progress(f"multiple registration {a}-{b}: {pair_rows[-1]['average_normal_distance_mm']:.3f} mm")
         else:
             progress(f"multiple registration {a}-{b}: left out, the surfaces barely overlap")
-    return {"transforms": T, "sigmas": sig, "pairs": pair_rows, "iterations": it, "converged": converged,
-            "sigma0_mm": s0, "left_out": sorted(f"{a}-{b}" for a, b in weak)}
+    return {"transforms": T, "sigmas": sig, "strength": strength, "pairs": pair_rows, "iterations": it,
+            "converged": converged, "sigma0_mm": s0, "left_out": sorted(f"{a}-{b}" for a, b in weak)}
+
+
+def arm_strength(cov: np.ndarray, points: np.ndarray, centre: np.ndarray, max_points: int = 5000) -> dict:
+    """How firmly the adjustment holds one arm: its parameters' uncertainty along the weakest directions.
+
+    ``cov`` is the arm's 7×7 covariance (scale, rotation [rad], translation
+    [mm], increments about ``centre``), ``points`` the arm's surface in the
+    reference frame. Figures (1 sigma): the translation along its weakest
+    direction, the rotation about its weakest axis, and the largest position
+    uncertainty of any of the arm's points (rotation's lever included), each
+    with its direction (unit vector in the reference arm's frame).
+    """
+    cov = 0.5 * (cov + cov.T)
+    lam, vec = np.linalg.eigh(cov[4:7, 4:7])
+    t_sig, t_dir = float(np.sqrt(max(lam[-1], 0.0))), vec[:, -1]
+    lam, vec = np.linalg.eigh(cov[1:4, 1:4])
+    r_sig, r_axis = float(np.degrees(np.sqrt(max(lam[-1], 0.0)))), vec[:, -1]
+    P = np.asarray(points)[_subsample(len(points), max_points)]
+    Y = P - centre
+    # d(point) = Y ds + w × Y + dt = [Y, -[Y]x, I] · (ds, w, dt)
+    J = np.zeros((len(Y), 3, 7))
+    J[:, :, 0] = Y
+    J[:, 0, 2], J[:, 0, 3] = Y[:, 2], -Y[:, 1]
+    J[:, 1, 1], J[:, 1, 3] = -Y[:, 2], Y[:, 0]
+    J[:, 2, 1], J[:, 2, 2] = Y[:, 1], -Y[:, 0]
+    J[:, :, 4:7] = np.eye(3)
+    C = np.einsum("nij,jk,nlk->nil", J, cov, J)
+    lam, vec = np.linalg.eigh(C)
+    worst = int(np.argmax(lam[:, -1]))
+    p_sig, p_dir = float(np.sqrt(max(lam[worst, -1], 0.0))), vec[worst, :, -1]
+
+    def unit(v):
+        v = np.asarray(v, float)
+        return (v if v[np.argmax(np.abs(v))] >= 0 else -v).round(3).tolist()
+
+    return {"translation_sigma_mm": t_sig, "translation_direction": unit(t_dir),
+            "rotation_sigma_deg": r_sig, "rotation_axis": unit(r_axis),
+            "position_sigma_mm": p_sig, "position_direction": unit(p_dir),
+            "position_at": np.asarray(P[worst], float).round(1).tolist()}
 
 
 def pair_fit(moving: PointSurface, fixed: PointSurface, T_moving: Transform, T_fixed: Transform,
@@ -392,9 +525,37 @@ def pair_fit(moving: PointSurface, fixed: PointSurface, T_moving: Transform, T_f
     """How well two placed surfaces fit: average normal distance (mm) and matched fraction of ``moving``."""
     cfg = cfg or ICPatchConfig()
     rel = T_fixed.inverse().compose(T_moving)
-    idx, _, _, d = correspondences(moving.points, moving.normals, PatchIndex(fixed, cfg.max_patch_edge), rel,
+    # all patches: the same measure whichever patches a registration used
+    idx, _, _, d = correspondences(moving.points, moving.normals, PatchIndex(fixed), rel,
                                    max_distance_mm, cfg)
     d = d * T_fixed.scale
     return {"average_normal_distance_mm": float(np.mean(np.abs(d))) if len(d) else None,
             "signed_mean_mm": float(np.mean(d)) if len(d) else None,
             "matched_fraction": float(len(idx) / max(len(moving.points), 1))}
+
+
+def _axis_name(v) -> str:
+    v = np.asarray(v, float)
+    k = int(np.argmax(np.abs(v)))
+    return f"({v[0]:.2f}, {v[1]:.2f}, {v[2]:.2f}), mostly {'xyz'[k]}"
+
+
+def weak_arms(strength: dict, surfaces: dict, cfg: ICPatchConfig | None = None) -> dict:
+    """Arms the adjustment does not hold firmly: ``{arm: problem}`` naming the weak direction.
+
+    ``strength`` is :func:`multi_surface_registration`'s (per arm, from
+    :func:`arm_strength`); the limit is ``max_position_sigma_factor`` times
+    the median precision of the arm's points.
+    """
+    cfg = cfg or ICPatchConfig()
+    out = {}
+    for a, st in strength.items():
+        own = float(np.median(surfaces[a].data["sigma_mm"])) if "sigma_mm" in (surfaces[a].data or {}) else 0.1
+        limit = cfg.max_position_sigma_factor * own
+        if not np.isfinite(st["position_sigma_mm"]) or st["position_sigma_mm"] > limit:
+            out[a] = (f"arm {a} is not held by its overlaps: its surface can move {st['position_sigma_mm']:.2f} mm "
+                      f"(1 sigma) along {_axis_name(st['position_direction'])} > {limit:.2f} mm "
+                      f"({cfg.max_position_sigma_factor:g} x its points' precision {own:.2f} mm); weakest "
+                      f"translation {st['translation_sigma_mm']:.2f} mm along {_axis_name(st['translation_direction'])}, "
+                      f"rotation {st['rotation_sigma_deg']:.3f} deg about {_axis_name(st['rotation_axis'])}")
+    return out
