@@ -45,12 +45,13 @@ $(STAMP): pyproject.toml | sysdeps
 
 # The paper-scale figures of docs/benchmarks.md (hours on 2 cores).
 bench: $(STAMP)
-	@if command -v uv >/dev/null 2>&1; then uv pip install -q -p $(PY) -e ".[bench]"; else $(PY) -m pip install -q -e ".[bench]"; fi
+	@if command -v uv >/dev/null 2>&1; then uv pip install -q -p $(PY) -e ".[bench,server]"; else $(PY) -m pip install -q -e ".[bench,server]"; fi
 	$(PY) benchmarks/bench_simulate.py --preset paper --out bench-out/paper
 	$(PY) benchmarks/bench_calibrate.py --scenario bench-out/paper
 	$(PY) benchmarks/bench_epipolar.py --scenario bench-out/paper --capture visit0-a
 	$(PY) benchmarks/bench_reconstruct_arm.py --scenario bench-out/paper --capture visit0-a
 	$(PY) benchmarks/bench_reconstruct.py --scenario bench-out/paper --capture visit0-a
+	$(PY) benchmarks/bench_service.py --scenario bench-out/paper --capture visit0-a
 
 clean:
 	rm -rf $(VENV) demo-out bench-out var .pytest_cache
