@@ -54,6 +54,7 @@ class IndicesConfig:
     end_margin: float = 0.05  # sections this close to VP or SP (fraction) are left out: landmarks' own shapes
     symmetry_search_mm: float = 50.0  # the symmetry point is searched this far either side of the VP-SP line
     symmetry_window_mm: float = 40.0  # half width of the profile compared with its mirror image
+    line_smooth_mm: float = 8.0  # Gaussian smoothing (sigma) of the line of symmetry along the height
     rotation_window_mm: float = 12.0  # half width over which the surface normal at the symmetry line is averaged
     smooth_mm: float = 6.0  # Gaussian smoothing (sigma) of the depth map before profiles are read
     spine_depth_mm: float = 45.0  # skin to vertebral body centre at the symmetry line (adolescent, thoracic):

@@ -87,7 +87,8 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
     spacing = point_spacing(torso.points)
     if ic.smooth_mm < 1.5 * spacing or ic.grid_mm < 1.0 * spacing:
         # a sparse cloud (a reduced rig): cells and smoothing grow with the point spacing
-        ic = replace(ic, grid_mm=max(ic.grid_mm, 1.0 * spacing), smooth_mm=max(ic.smooth_mm, 1.5 * spacing))
+        ic = replace(ic, grid_mm=max(ic.grid_mm, 1.0 * spacing), smooth_mm=max(ic.smooth_mm, 1.5 * spacing),
+                     gap_mm=max(ic.gap_mm, 4.0 * spacing))
     post, facing = detect_posterior(torso.points, ic.facing)
     c = np.median(torso.points, axis=0)
     frame0 = frame_from_posterior(post, [c[0], c[1], 0.0])
@@ -145,12 +146,16 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
     sections = []
     mz, mx, _ = auto["midline"]
     okm = np.isfinite(mx)
-    fine = replace(ic, symmetry_search_mm=6.0)
+    # the line of symmetry smoothed along the height (Gaussian, sigma ic.line_smooth_mm), as rasterstereography does
+    mz, mx = mz[okm], mx[okm]
+    w = np.exp(-0.5 * ((mz[:, None] - mz[None, :]) / ic.line_smooth_mm) ** 2)
+    mx_s = (w @ mx) / w.sum(axis=1)
     for s in np.arange(ic.end_margin, 1 - ic.end_margin + 1e-9, ic.section_step):
         z = sp[2] + s * length
         x_line = sp[0] + s * (vp[0] - sp[0])
         row = dmap.row(z)
-        x0, misfit = symmetry_point(dmap.x, row, float(np.interp(z, mz[okm], mx[okm])), fine)
+        x0 = float(np.interp(z, mz, mx_s))
+        misfit = float(np.interp(z, mz, mx) - x0)
         if not np.isfinite(x0):
             continue
         m = slope_at(dmap.x, row, x0, ic.rotation_window_mm)
@@ -164,7 +169,7 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         k = int(np.nanargmax(np.abs(h))) if np.isfinite(h).any() else 0
         sections.append({
             "level": round(float(s), 4), "z_mm": float(z),
-            "symmetry_point_mm": float(x0), "symmetry_misfit_mm": float(misfit),
+            "symmetry_point_mm": float(x0), "symmetry_residual_mm": float(misfit),
             "symmetry_line_deviation_mm": float(-(x0 - x_line)),
             "lateral_deviation_mm": float(-(x_spine - x_line)),
             "surface_rotation_deg": rot,

@@ -132,6 +132,10 @@ def detect_landmarks(P: np.ndarray, back_mask: np.ndarray, dmap: DepthMap, cfg: 
     """VP and SP (patient frame, mm) on the back's symmetry line, with how each was found."""
     z_vp, how_vp = find_vp_height(P, back_mask, cfg)
     zs, xs, ds = midline_profile(dmap, cfg)
+    seen = zs[np.isfinite(ds)]
+    if len(seen) and z_vp > seen.max():
+        # the back's midline is not seen up to the neck (a sparse surface): VP at the highest midline point seen
+        z_vp, how_vp = float(seen.max()), "top of the seen midline"
     z_sp, how_sp = find_sp_height(zs, ds, z_vp)
     return {"vertebra_prominens": point_on_midline(dmap, z_vp, xs, zs, cfg, below=True), "vp_method": how_vp,
             "sacral_point": point_on_midline(dmap, z_sp, xs, zs, cfg), "sp_method": how_sp,

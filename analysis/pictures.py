@@ -40,13 +40,36 @@ def default_frame(points: np.ndarray) -> PatientFrame:
     return frame_from_posterior(post, np.median(points, axis=0))
 
 
-def _camera(plotter, frame: PatientFrame, centre: np.ndarray, view: str, distance: float):
+def _view_axes(frame: PatientFrame, view: str):
+    """Direction from the subject towards the camera, and the picture's up, for a named view."""
     left, post, up = frame.R
     direction = {"back": post, "front": -post, "side": -left, "top": up}[view]
-    plotter.camera.position = (centre + distance * direction).tolist()
+    return direction, (post if view == "top" else up)
+
+
+def _camera(plotter, frame: PatientFrame, points: np.ndarray, view: str, aspect: float):
+    """Parallel projection from the named side, the points' extent filling the picture with a margin."""
+    direction, up = _view_axes(frame, view)
+    right = np.cross(up, direction)
+    centre = 0.5 * (points.min(axis=0) + points.max(axis=0))
+    rel = points - centre
+    w = np.ptp(rel @ right) if len(points) else 1.0
+    h = np.ptp(rel @ up) if len(points) else 1.0
+    extent = float(np.max(np.ptp(points, axis=0))) if len(points) else 1.0
+    plotter.camera.position = (centre + 3 * extent * direction).tolist()
     plotter.camera.focal_point = centre.tolist()
-    plotter.camera.up = (post if view == "top" else up).tolist()
+    plotter.camera.up = up.tolist()
     plotter.camera.parallel_projection = True
+    plotter.reset_camera_clipping_range()
+    plotter.camera.parallel_scale = 0.55 * max(h, w / aspect)
+
+
+def _facing(normals, frame, view):
+    """Points whose normal faces the camera of ``view`` (a cloud has no occlusion of its own)."""
+    if normals is None:
+        return slice(None)
+    direction, _ = _view_axes(frame, view)
+    return np.asarray(normals) @ direction > -0.1
 
 
 def _cloud(points, normals=None, scalars=None, name="values"):
@@ -59,17 +82,14 @@ def _cloud(points, normals=None, scalars=None, name="values"):
     return cloud
 
 
-def _render(cloud, out_png, frame, view, size, point_size, title=None, **mesh_kw):
+def _render(points, normals, out_png, frame, view, size, point_size, title=None, **mesh_kw):
     pv = _pv()
     p = pv.Plotter(off_screen=True, window_size=list(size))
     p.set_background("white")
+    keep = _facing(normals, frame, view)
+    cloud = _cloud(np.asarray(points)[keep], None if normals is None else np.asarray(normals)[keep])
     p.add_mesh(cloud, point_size=point_size, render_points_as_spheres=True, lighting=True, **mesh_kw)
-    P = np.asarray(cloud.points)
-    centre = 0.5 * (P.min(axis=0) + P.max(axis=0))
-    extent = float(np.max(P.max(axis=0) - P.min(axis=0)))
-    _camera(p, frame, centre, view, 3 * extent)
-    p.reset_camera_clipping_range()
-    p.camera.parallel_scale = 0.55 * extent
+    _camera(p, frame, np.asarray(cloud.points), view, size[0] / size[1])
     if title:
         p.add_text(title, position="upper_left", font_size=12, color="black")
     Path(out_png).parent.mkdir(parents=True, exist_ok=True)
@@ -95,13 +115,13 @@ def torso_views(torso: Torso | str, out_dir, frame: PatientFrame | None = None, 
     if not isinstance(torso, Torso):
         torso = read_torso(torso)
     frame = frame or default_frame(torso.points)
-    cloud = _cloud(torso.points, torso.normals)
     ps = _point_size(torso.points, size)
-    return [_render(cloud, Path(out_dir) / f"torso-{v}.png", frame, v, size, ps, title=f"{v}",
+    return [_render(torso.points, torso.normals, Path(out_dir) / f"torso-{v}.png", frame, v, size, ps, title=f"{v}",
                     color="#e0b8a0", smooth_shading=True, specular=0.2) for v in views]
 
 
-def _scalar_picture(points, values, out_png, frame, limit_mm, title, bar_title, size, views, cmap, mdc_mm=None):
+def _scalar_picture(points, values, out_png, frame, limit_mm, title, bar_title, size, views, cmap, mdc_mm=None,
+                    normals=None):
     pv = _pv()
     points = np.asarray(points, float)
     values = np.asarray(values, float)
@@ -110,24 +130,25 @@ def _scalar_picture(points, values, out_png, frame, limit_mm, title, bar_title, 
         limit_mm = float(np.percentile(np.abs(finite), 98)) if len(finite) else 1.0
         limit_mm = max(limit_mm, 0.5)
     frame = frame or default_frame(points)
-    ps = _point_size(points, (size[0] // len(views), size[1]))
-    p = pv.Plotter(off_screen=True, window_size=list(size), shape=(1, len(views)))
-    cloud = _cloud(points, None, values, bar_title)
-    P = points
-    centre = 0.5 * (P.min(axis=0) + P.max(axis=0))
-    extent = float(np.max(P.max(axis=0) - P.min(axis=0)))
+    if normals is None:
+        from .torso import make_torso
+
+        normals = make_torso(points).normals
+    sub = (size[0] // len(views), size[1])
+    ps = _point_size(points, sub)
+    p = pv.Plotter(off_screen=True, window_size=list(size), shape=(1, len(views)), border=False)
     for k, v in enumerate(views):
         p.subplot(0, k)
         p.set_background("white")
-        p.add_mesh(cloud.copy(), scalars=bar_title, cmap=cmap, clim=[-limit_mm, limit_mm], nan_color="lightgrey",
+        keep = _facing(normals, frame, v)
+        cloud = _cloud(points[keep], None, values[keep], bar_title)
+        p.add_mesh(cloud, scalars=bar_title, cmap=cmap, clim=[-limit_mm, limit_mm], nan_color="lightgrey",
                    point_size=ps, render_points_as_spheres=True, show_scalar_bar=False)
-        _camera(p, frame, centre, v, 3 * extent)
-        p.reset_camera_clipping_range()
-        p.camera.parallel_scale = 0.55 * extent
+        _camera(p, frame, points[keep], v, 0.85 * sub[0] / sub[1])
         p.add_text(v, position="upper_left", font_size=10, color="black")
     p.subplot(0, len(views) - 1)
     p.add_scalar_bar(title=bar_title, color="black", vertical=True, n_labels=5, fmt="%+.1f",
-                     position_x=0.72, position_y=0.15, height=0.7, width=0.08)
+                     position_x=0.84, position_y=0.15, height=0.7, width=0.08)
     if title:
         p.subplot(0, 0)
         text = title if mdc_mm is None else f"{title}  (MDC {mdc_mm:.2f} mm)"
@@ -140,7 +161,7 @@ def _scalar_picture(points, values, out_png, frame, limit_mm, title, bar_title, 
 
 def deformation_picture(points, deformation_mm, out_png, frame: PatientFrame | None = None,
                         limit_mm: float | None = None, mdc_mm: float | None = None, size=(1400, 900),
-                        views=("back", "side", "front")) -> str:
+                        views=("back", "side", "front"), normals=None) -> str:
     """The deformation map: later points (earlier frame) coloured by signed normal distance (mm).
 
     Diverging scale (blue inward, red outward) symmetric about zero, limit
@@ -148,14 +169,14 @@ def deformation_picture(points, deformation_mm, out_png, frame: PatientFrame | N
     points without a value in grey. ``mdc_mm`` is written under the title.
     """
     return _scalar_picture(points, deformation_mm, out_png, frame, limit_mm, "deformation since the earlier visit",
-                           "deformation (mm)", size, views, "RdBu_r", mdc_mm)
+                           "deformation (mm)", size, views, "RdBu_r", mdc_mm, normals)
 
 
 def asymmetry_picture(torso: Torso, asymmetry_mm, out_png, frame: PatientFrame | None = None,
                       limit_mm: float | None = None, size=(1400, 900), views=("back", "side", "front")) -> str:
     """The asymmetry map: each trunk point's signed distance to the torso's mirror image (mm, + stands out)."""
     return _scalar_picture(torso.points, asymmetry_mm, out_png, frame, limit_mm, "asymmetry (torso vs its mirror image)",
-                           "asymmetry (mm)", size, views, "PuOr_r")
+                           "asymmetry (mm)", size, views, "PuOr_r", None, torso.normals)
 
 
 TREND_FIGURES = (("lateral_deviation_mm.max", "lateral deviation, max (mm)"),
@@ -238,5 +259,6 @@ def comparison_pictures(comparison_dir, out_dir, mdc_mm: float | None = None) ->
 
     ply = read_ply(Path(comparison_dir) / "deformation.ply")
     d = ply["data"]["deformation_mm"]
-    png = deformation_picture(ply["points"], d, Path(out_dir) / "deformation.png", mdc_mm=mdc_mm)
+    png = deformation_picture(ply["points"], d, Path(out_dir) / "deformation.png", mdc_mm=mdc_mm,
+                              normals=ply.get("normals"))
     return {"deformation": png}

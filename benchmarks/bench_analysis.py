@@ -1,0 +1,275 @@
+"""Validation of the analysis on the simulator, where the applied deformation is known.
+
+Part 1 (always, fast): the true posed MakeHuman torso of each capture of the
+paper preset, sampled as the rig would measure it (points, 0.07 mm noise,
+holes where fewer than two cameras of an arm see the skin):
+- indices of visit0-a / visit0-b / visit1-a against the applied curve
+  (surface rotation at the apex within 1 deg, lateral deviation within 2 mm);
+- a severity series (apex rotation 0..20 deg, lateral deviation in proportion):
+  every index must rise monotonically;
+- repeatability: visit0-a vs visit0-b (same visit: sway and breathing only)
+  gives the MDC of every figure; visit0-a vs visit1-a (5 deg progression,
+  growth) must exceed it, the re-scan must not (checked on a second
+  repeat pair made from other noise draws).
+
+Part 2 (when present): the same on reconstructions, ``--recon DIR`` holding
+``visit0-a/torso.ply`` etc. (default: bench-out/paper-recon, else
+bench-out/analysis-tiny, which ``--make-tiny`` simulates, calibrates and
+reconstructs at the tiny preset).
+
+    .venv/bin/python benchmarks/bench_analysis.py [--recon DIR] [--make-tiny] [--out bench-out/analysis]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from analysis.compare import compare_torsos, write_comparison  # noqa: E402
+from analysis.indices import analyse_torso  # noqa: E402
+from analysis.jsonsafe import clean  # noqa: E402
+from analysis.repeatability import index_changes, mdc_from_comparisons, mdc_from_index_pairs  # noqa: E402
+from analysis.synthetic import scan_surface  # noqa: E402
+from analysis.torso import read_torso  # noqa: E402
+from recon_engine.simulator.config import preset  # noqa: E402
+from recon_engine.simulator.posed import posed_subject, posture_like  # noqa: E402
+
+CAPTURES = ("visit0-a", "visit0-b", "visit1-a")
+HEAD = ("lateral_deviation_mm.max", "lateral_deviation_mm.rms", "surface_rotation_deg.max", "surface_rotation_deg.rms",
+        "hump_mm", "hump_angle_deg", "trunk_imbalance_mm", "asymmetry_mm", "trunk_length_mm")
+
+
+def truth_at_apex(subject, rep):
+    """Applied rotation and lateral deviation at the levels where the indices report their maxima."""
+    lv = np.asarray(subject["curve"]["levels"])
+    lm = subject["landmarks"]
+    z_sp, z_vp = lm["sacral_point"][2], lm["vertebra_prominens"][2]
+    out = {}
+    for key, name in (("surface_rotation", "rotation_deg"), ("lateral_deviation", "lateral_mm")):
+        z = rep["apex"][key]["z_mm"]
+        level = (z - z_sp) / (z_vp - z_sp)
+        out[name] = float(np.interp(level, lv, subject["curve"][name]))
+    i = int(np.argmax(np.abs(subject["curve"]["rotation_deg"])))
+    out["apex_rotation_deg"] = float(subject["curve"]["rotation_deg"][i])
+    out["apex_lateral_mm"] = float(subject["curve"]["lateral_mm"][i])
+    return out
+
+
+def scan(cfg, capture=None, posture=None, seed=0, n=120_000):
+    s = posed_subject(cfg, capture, posture)
+    t = scan_surface(s["vertices"], s["triangles"], s["torso_faces"], n_points=n, seed=seed)
+    t.source = f"truth:{capture or 'posture'}:{seed}"
+    return s, t
+
+
+def get(rep, key):
+    v = rep
+    for k in key.split("."):
+        v = v[k]
+    return v
+
+
+def part1(out: Path, n_points: int) -> dict:
+    cfg = preset("paper")
+    res = {"captures": {}, "series": [], "repeatability": {}}
+    subjects, torsos, analyses = {}, {}, {}
+    for i, c in enumerate(CAPTURES):
+        t0 = time.perf_counter()
+        subjects[c], torsos[c] = scan(cfg, c, seed=i, n=n_points)
+        analyses[c] = analyse_torso(torsos[c])
+        rep = analyses[c].report
+        tr = truth_at_apex(subjects[c], rep)
+        lm_truth = subjects[c]["landmarks"]
+        res["captures"][c] = {
+            "points": len(torsos[c]), "seconds": round(time.perf_counter() - t0, 1),
+            "surface_rotation_max_deg": rep["surface_rotation_deg"]["max"], "applied_rotation_apex_deg": tr["apex_rotation_deg"],
+            "applied_rotation_at_measured_level_deg": tr["rotation_deg"],
+            "lateral_deviation_max_mm": rep["lateral_deviation_mm"]["max"], "applied_lateral_apex_mm": tr["apex_lateral_mm"],
+            "applied_lateral_at_measured_level_mm": tr["lateral_mm"],
+            "vp_error_mm": float(np.linalg.norm(np.array(rep["landmarks"]["vertebra_prominens"]["position_mm"]) - lm_truth["vertebra_prominens"])),
+            "sp_error_mm": float(np.linalg.norm(np.array(rep["landmarks"]["sacral_point"]["position_mm"]) - lm_truth["sacral_point"])),
+            "indices": {k: get(rep, k) for k in HEAD}}
+        print(f"{c}: rotation {rep['surface_rotation_deg']['max']:+.2f} deg (applied {tr['apex_rotation_deg']:+.2f}), "
+              f"lateral {rep['lateral_deviation_mm']['max']:+.2f} mm (applied {tr['apex_lateral_mm']:+.2f}), "
+              f"VP error {res['captures'][c]['vp_error_mm']:.1f} mm, SP error {res['captures'][c]['sp_error_mm']:.1f} mm", flush=True)
+    # severity series at rest in the rig, no sway
+    for k, rot in enumerate((0.0, 5.0, 10.0, 15.0, 20.0)):
+        s, t = scan(cfg, posture=posture_like(cfg, rot), seed=10 + k, n=n_points)
+        rep = analyse_torso(t).report
+        row = {"applied_rotation_deg": rot, "applied_lateral_mm": cfg.subject.lateral_mm * rot / cfg.subject.rotation_deg}
+        row.update({k2: get(rep, k2) for k2 in HEAD})
+        res["series"].append(row)
+        print(f"series {rot:4.1f} deg: " + ", ".join(f"{k2} {row[k2]:+.2f}" for k2 in HEAD), flush=True)
+    # the estimator alone: the same 10 deg curve without the simulated rib prominence (0.3 mm/deg), whose slope at
+    # the midline tilts the skin there beyond the applied rotation
+    from dataclasses import replace as _replace
+
+    flat = _replace(cfg, subject=_replace(cfg.subject, hump_mm_per_deg=0.0))
+    s, t = scan(flat, posture=posture_like(flat, 10.0), seed=30, n=n_points)
+    rep = analyse_torso(t).report
+    tr = truth_at_apex(s, rep)
+    res["no_prominence_10deg"] = {"surface_rotation_max_deg": rep["surface_rotation_deg"]["max"],
+                                  "applied_rotation_apex_deg": tr["apex_rotation_deg"],
+                                  "lateral_deviation_max_mm": rep["lateral_deviation_mm"]["max"],
+                                  "applied_lateral_apex_mm": tr["apex_lateral_mm"],
+                                  "symmetry_line_deviation_max_mm": rep["symmetry_line_deviation_mm"]["max"]}
+    print(f"no rib prominence, 10 deg: {res['no_prominence_10deg']}", flush=True)
+    mono = {}
+    for k2 in HEAD:
+        if k2 == "trunk_length_mm":
+            continue
+        v = [abs(r[k2]) for r in res["series"]]
+        mono[k2] = bool(all(b > a for a, b in zip(v, v[1:])))
+    res["series_monotone"] = mono
+    # repeatability and progression
+    t0 = time.perf_counter()
+    rep_ab = compare_torsos(torsos["visit0-a"], torsos["visit0-b"], earlier_analysis=analyses["visit0-a"])
+    t_cmp = time.perf_counter() - t0
+    # a second repeat pair from other noise/sampling draws of the same two postures
+    _, a2 = scan(cfg, "visit0-a", seed=21, n=n_points)
+    _, b2 = scan(cfg, "visit0-b", seed=22, n=n_points)
+    rep_ab2 = compare_torsos(a2, b2)
+    mdc_cmp = mdc_from_comparisons([rep_ab["report"]])
+    ind_a2, ind_b2 = analyse_torso(a2).report, analyse_torso(b2).report
+    mdc_ind = mdc_from_index_pairs([(analyses["visit0-a"].report, analyses["visit0-b"].report), (ind_a2, ind_b2)])
+    prog = compare_torsos(torsos["visit0-a"], torsos["visit1-a"], mdc=mdc_cmp, earlier_analysis=analyses["visit0-a"])
+    from analysis.repeatability import flag_comparison
+
+    flag_comparison(rep_ab2["report"], mdc_cmp)
+    write_comparison(out / "truth-visit0-a-visit1-a", prog)
+    ch_rep = index_changes(ind_a2, ind_b2, mdc_ind)
+    ch_prog = index_changes(analyses["visit0-a"].report, analyses["visit1-a"].report, mdc_ind)
+    res["repeatability"] = {
+        "repeat_pair": {k: rep_ab["report"][k] for k in ("average_normal_distance_mm", "matched_fraction", "signed_distance_mm")},
+        "second_repeat_pair": {k: rep_ab2["report"][k] for k in ("average_normal_distance_mm", "matched_fraction", "signed_distance_mm")},
+        "progression_pair": {k: prog["report"][k] for k in ("average_normal_distance_mm", "matched_fraction", "signed_distance_mm", "growth")},
+        "compare_seconds": round(t_cmp, 1),
+        "mdc_comparison": mdc_cmp, "mdc_indices": mdc_ind,
+        "second_repeat_exceeds": {k: v for k, v in rep_ab2["report"]["exceeds_mdc"].items() if v},
+        "progression_exceeds": {k: v for k, v in prog["report"]["exceeds_mdc"].items() if v},
+        "index_changes_second_repeat": ch_rep, "index_changes_progression": ch_prog,
+    }
+    n_rep = sum(1 for v in rep_ab2["report"]["exceeds_mdc"].values() if v)
+    n_prog = sum(1 for v in prog["report"]["exceeds_mdc"].values() if v)
+    print(f"repeat pair: {rep_ab['report']['average_normal_distance_mm']:.3f} mm, {rep_ab['report']['matched_fraction']:.1%} matched; "
+          f"second repeat pair exceeds the MDC in {n_rep} of {len(mdc_cmp)} comparison figures; "
+          f"progression in {n_prog} ({prog['report']['average_normal_distance_mm']:.3f} mm, "
+          f"{prog['report']['matched_fraction']:.1%} matched)")
+    print("index changes beyond the MDC: repeat " + str([k for k, v in ch_rep.items() if v["exceeds_mdc"]]) +
+          ", progression " + str([k for k, v in ch_prog.items() if v["exceeds_mdc"]]))
+    # pictures
+    from analysis import pictures
+
+    pics = out / "pictures"
+    res["pictures"] = {
+        "views": pictures.torso_views(torsos["visit0-a"], pics, analyses["visit0-a"].frame),
+        "asymmetry": pictures.asymmetry_picture(torsos["visit0-a"], analyses["visit0-a"].asymmetry_mm, pics / "asymmetry.png",
+                                                analyses["visit0-a"].frame),
+        "deformation": pictures.deformation_picture(prog["points"], prog["deformation_mm"], pics / "deformation.png",
+                                                    analyses["visit0-a"].frame, normals=prog["normals"],
+                                                    mdc_mm=mdc_cmp.get("signed_distance_mm.mean", {}).get("mdc")),
+        "trend": pictures.trend_picture([(c, analyses[c].report) for c in CAPTURES], pics / "trend.png", mdc_ind),
+    }
+    return res
+
+
+def make_tiny(root: Path):
+    from dataclasses import replace
+
+    from recon_engine.simulator.scenario import simulate
+
+    cfg = replace(preset("tiny"), captures=tuple((c, 1 if c.startswith("visit1") else 0) for c in CAPTURES))
+    simulate(root / "scenario", cfg, force=True)
+    exe = str(ROOT / ".venv" / "bin" / "torsoscan")
+    sc = root / "scenario"
+    subprocess.run([exe, "calibrate", "--rig", str(sc / "rig.json"), "--testfield", str(sc / "testfield.json"),
+                    "--out", str(root / "calibration.json"), *map(str, sorted((sc / "captures").glob("testfield-pose*")))],
+                   check=True)
+    for c in CAPTURES:
+        subprocess.run([exe, "reconstruct", "--rig", str(sc / "rig.json"), "--calibration", str(root / "calibration.json"),
+                        "--out", str(root / c), "--force", str(sc / "captures" / c)], check=True)
+
+
+def part2(recon: Path, out: Path) -> dict:
+    res = {"folder": str(recon), "captures": {}}
+    torsos, analyses = {}, {}
+    for c in CAPTURES:
+        p = recon / c / "torso.ply"
+        if not p.exists():
+            continue
+        torsos[c] = read_torso(p)
+        t0 = time.perf_counter()
+        try:
+            analyses[c] = analyse_torso(torsos[c])
+            rep = analyses[c].report
+            res["captures"][c] = {"points": len(torsos[c]), "seconds": round(time.perf_counter() - t0, 1),
+                                  "indices": {k: get(rep, k) for k in HEAD},
+                                  "landmarks": rep["landmarks"]}
+        except ValueError as exc:
+            res["captures"][c] = {"points": len(torsos[c]), "error": str(exc)}
+        print(f"recon {c}: {res['captures'][c]}", flush=True)
+    # truth of the scenario, when it is ours
+    for pair in (("visit0-a", "visit0-b"), ("visit0-a", "visit1-a")):
+        if all(c in torsos for c in pair):
+            t0 = time.perf_counter()
+            r = compare_torsos(torsos[pair[0]], torsos[pair[1]], earlier_analysis=analyses.get(pair[0]))
+            write_comparison(out / f"recon-{pair[0]}-{pair[1]}", r)
+            rep = r["report"]
+            res[f"{pair[0]}->{pair[1]}"] = {k: rep.get(k) for k in ("average_normal_distance_mm", "matched_fraction",
+                                                                   "signed_distance_mm", "growth")}
+            res[f"{pair[0]}->{pair[1]}"]["seconds"] = round(time.perf_counter() - t0, 1)
+            print(f"recon {pair}: {rep['average_normal_distance_mm']:.3f} mm, {rep['matched_fraction']:.1%} matched", flush=True)
+    if "visit0-a->visit0-b" in res and "visit0-a->visit1-a" in res:
+        rep_r = res["visit0-a->visit0-b"]
+        mdc = mdc_from_comparisons([{k: v for k, v in rep_r.items() if k != "growth"}])
+        prog = res["visit0-a->visit1-a"]
+        res["progression_exceeds_mdc"] = {
+            "average_normal_distance_mm": prog["average_normal_distance_mm"] > mdc["average_normal_distance_mm"]["mdc"],
+            "signed_distance_mm.p95": prog["signed_distance_mm"]["p95"] > mdc["signed_distance_mm.p95"]["mdc"]}
+    return res
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default=str(ROOT / "bench-out" / "analysis"))
+    ap.add_argument("--recon", help="folder with visit0-a/torso.ply, visit0-b/..., visit1-a/...")
+    ap.add_argument("--make-tiny", action="store_true", help="simulate and reconstruct the tiny preset first")
+    ap.add_argument("--points", type=int, default=120_000, help="points per sampled true torso")
+    ap.add_argument("--skip-truth", action="store_true")
+    args = ap.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    result = {"machine": {"cpus": __import__("os").cpu_count(), "platform": platform.platform(),
+                          "processor": platform.processor()},
+              "command": " ".join(sys.argv)}
+    if not args.skip_truth:
+        result["truth"] = part1(out, args.points)
+    tiny = ROOT / "bench-out" / "analysis-tiny"
+    if args.make_tiny:
+        make_tiny(tiny)
+    recon = Path(args.recon) if args.recon else None
+    if recon is None:
+        paper = ROOT / "bench-out" / "paper-recon"
+        recon = paper if (paper / "visit0-a" / "torso.ply").exists() else tiny
+    if (recon / "visit0-a" / "torso.ply").exists():
+        result["reconstructions"] = part2(recon, out)
+    else:
+        print(f"no reconstructions in {recon}: part 2 skipped")
+    result["seconds"] = round(time.perf_counter() - t0, 1)
+    (out / "bench_analysis.json").write_text(json.dumps(clean(result), indent=2))
+    print(f"wrote {out / 'bench_analysis.json'} in {result['seconds']} s")
+
+
+if __name__ == "__main__":
+    main()
