@@ -1,42 +1,102 @@
-"""The comparison step of a reconstruction job: the later torso against an earlier visit's.
+"""The analysis steps of a reconstruction job, and the rig's minimal detectable changes.
 
-Calls the analysis (``analysis.compare``) exactly as ``torsoscan compare``
-does and keeps its files (``report.json``, ``deformation.ply``) in storage.
+Calls ``analysis`` exactly as ``torsoscan indices`` and ``torsoscan compare``
+do, and keeps their files and pictures in storage:
+
+- every torso gets its clinical indices, its shaded views and asymmetry map;
+- every torso is compared with each earlier visit's (a change) and with the
+  earlier captures of its own visit (a repeat pair: the rig's repeatability);
+- the minimal detectable change of every figure comes from all repeat pairs
+  of the clinic's rigs.
 """
 
+import json
 import tempfile
 from pathlib import Path
 
 from django.core.files import File
 from django.core.files.storage import default_storage
 
-from .models import Comparison
+from .models import Comparison, Reconstruction
 
 
-def _local(field, dest: Path) -> Path:
-    with default_storage.open(field.name, "rb") as src:
+def _local(field_or_name, dest: Path) -> Path:
+    name = getattr(field_or_name, "name", field_or_name)
+    with default_storage.open(name, "rb") as src:
         dest.write_bytes(src.read())
     return dest
 
 
-def compare_reconstructions(earlier, later) -> Comparison:
-    """Register ``later``'s torso to ``earlier``'s and record the deformation (idempotent per pair)."""
+def _store(folder: str, path: Path) -> str:
+    with open(path, "rb") as fh:
+        return default_storage.save(f"{folder}/{Path(path).name}", File(fh))
+
+
+def analyse_reconstruction(rec: Reconstruction) -> Reconstruction:
+    """Indices (with the clinician's landmark corrections, if any) and pictures of one torso."""
+    from analysis.jsonsafe import clean
+    from analysis.pictures import torso_pictures
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        out = torso_pictures(_local(rec.torso, tmp / "torso.ply"), tmp / "pictures", landmarks=rec.landmarks)
+        folder = f"results/{rec.job.uid}/pictures"
+        for old in (rec.pictures or {}).values():
+            default_storage.delete(old)
+        pictures = {Path(p).stem: _store(folder, Path(p)) for p in out["views"]}
+        pictures["asymmetry"] = _store(folder, Path(out["asymmetry"]))
+    rec.indices = clean(out["indices"])
+    rec.pictures = pictures
+    rec.save(update_fields=["indices", "pictures"])
+    return rec
+
+
+def clinic_mdc(clinic) -> dict:
+    """Minimal detectable change of every figure from the clinic's repeat pairs: figure -> {"mdc", "sem", "n"}."""
+    from analysis.repeatability import mdc_from_comparisons, mdc_from_index_pairs
+
+    pairs = [c for c in Comparison.objects.filter(later__session__rig__clinic=clinic)
+             .select_related("earlier__session", "later__session") if c.is_repeat]
+    mdc = mdc_from_comparisons([c.report for c in pairs])
+    mdc.update(mdc_from_index_pairs([(c.earlier.indices, c.later.indices) for c in pairs
+                                     if c.earlier.indices and c.later.indices]))
+    return mdc
+
+
+def compare_reconstructions(earlier: Reconstruction, later: Reconstruction) -> Comparison:
+    """Register ``later``'s torso to ``earlier``'s; the report, deformation map and its picture (once per pair)."""
     from analysis.compare import compare_torsos, write_comparison
+    from analysis.pictures import comparison_pictures
     from analysis.torso import read_torso
 
     existing = Comparison.objects.filter(earlier=earlier, later=later).first()
     if existing is not None:
         return existing
+    mdc = clinic_mdc(later.session.rig.clinic)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         result = compare_torsos(read_torso(_local(earlier.torso, tmp / "earlier.ply")),
-                                read_torso(_local(later.torso, tmp / "later.ply")))
+                                read_torso(_local(later.torso, tmp / "later.ply")),
+                                mdc={k: v["mdc"] for k, v in mdc.items()} or None)
         write_comparison(tmp / "out", result)
-        import json
-
         report = json.loads((tmp / "out" / "report.json").read_text())
+        anm = (mdc.get("average_normal_distance_mm") or {}).get("mdc")
+        pics = comparison_pictures(tmp / "out", tmp / "pictures", mdc_mm=anm)
         comparison = Comparison(earlier=earlier, later=later, report=report)
         with open(tmp / "out" / "deformation.ply", "rb") as fh:
             comparison.deformation.save(f"{earlier.pk}-{later.pk}-deformation.ply", File(fh), save=False)
+        folder = f"comparisons/{earlier.pk}-{later.pk}"
+        comparison.pictures = {Path(p).stem: _store(folder, Path(p)) for p in _paths(pics)}
         comparison.save()
     return comparison
+
+
+def _paths(pics) -> list:
+    """Every PNG path in what a pictures function returned (a path, a list, or a dict of them)."""
+    if isinstance(pics, (str, Path)):
+        return [pics] if str(pics).endswith(".png") else []
+    if isinstance(pics, dict):
+        return [p for v in pics.values() for p in _paths(v)]
+    if isinstance(pics, (list, tuple)):
+        return [p for v in pics for p in _paths(v)]
+    return []

@@ -314,6 +314,10 @@ class Reconstruction(models.Model):
     report = models.JSONField()
     status = models.CharField(max_length=16, help_text="ok, partial or failed, as the engine judged it")
     points = models.PositiveIntegerField()
+    indices = models.JSONField(null=True, blank=True, help_text="torso-indices/1 of this torso")
+    landmarks = models.JSONField(null=True, blank=True,
+                                 help_text="A clinician's corrections: vertebra_prominens, sacral_point (mm, rig frame)")
+    pictures = models.JSONField(default=dict, blank=True, help_text="Picture name -> storage name")
     created = models.DateTimeField(default=timezone.now)
 
     class Meta:
@@ -327,7 +331,13 @@ class Comparison(models.Model):
     later = models.ForeignKey(Reconstruction, models.CASCADE, related_name="comparisons")
     report = models.JSONField(default=dict)
     deformation = models.FileField(upload_to="comparisons/", max_length=500, blank=True)
+    pictures = models.JSONField(default=dict, blank=True, help_text="Picture name -> storage name")
     created = models.DateTimeField(default=timezone.now)
+
+    @property
+    def is_repeat(self):
+        """Two captures of one visit: a repeatability pair, not a change."""
+        return self.earlier.session.visit_id == self.later.session.visit_id
 
     class Meta:
         constraints = [models.UniqueConstraint(fields=["earlier", "later"], name="one_comparison_per_pair")]

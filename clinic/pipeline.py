@@ -29,7 +29,7 @@ from .models import ArmTask, Calibration, CaptureSession, Job, Reconstruction, S
 log = logging.getLogger(__name__)
 
 # where each stage's progress starts (percent)
-ARMS_START, REGISTRATION_START, COMPARISON_START = 5, 75, 92
+ARMS_START, REGISTRATION_START, ANALYSIS_START, COMPARISON_START = 5, 70, 85, 92
 
 
 class JobError(Exception):
@@ -297,6 +297,10 @@ def register(job_id: int) -> str:
             # the files stay for inspection, but the torso is not presented as good
             fail(job_id, "registration: " + "; ".join(result["report"]["problems"]))
             return "failed"
+        set_progress(job_id, "indices and pictures", ANALYSIS_START)
+        from .analysis_step import analyse_reconstruction
+
+        analyse_reconstruction(rec)
         set_progress(job_id, "comparison", COMPARISON_START)
         compare_with_earlier(rec)
         Job.objects.filter(pk=job_id, state=Job.RUNNING).update(
@@ -311,19 +315,21 @@ def register(job_id: int) -> str:
 
 
 def earlier_reconstructions(rec: Reconstruction):
-    """The patient's reconstructions from earlier visits (good ones, latest per visit)."""
+    """What ``rec`` is compared with: the latest good torso of each earlier visit of the patient
+    (a change), and every earlier good torso of its own visit (a repeat pair)."""
     visit = rec.session.visit
     if visit is None:
         return []
-    rows = (Reconstruction.objects.filter(session__visit__patient=visit.patient, status__in=["ok", "partial"],
+    good = (Reconstruction.objects.filter(session__visit__patient=visit.patient, status__in=["ok", "partial"],
                                           job__state=Job.SUCCEEDED)
-            .filter(Q(session__visit__date__lt=visit.date)
-                    | Q(session__visit__date=visit.date, session__visit_id__lt=visit.id))
-            .select_related("session__visit").order_by("-created"))
+            .exclude(pk=rec.pk).select_related("session__visit").order_by("-created"))
+    earlier = good.filter(Q(session__visit__date__lt=visit.date)
+                          | Q(session__visit__date=visit.date, session__visit_id__lt=visit.id))
     latest = {}
-    for r in rows:
+    for r in earlier:
         latest.setdefault(r.session.visit_id, r)
-    return list(latest.values())
+    repeats = list(good.filter(session__visit=visit, created__lt=rec.created))
+    return list(latest.values()) + repeats
 
 
 def compare_with_earlier(rec: Reconstruction) -> list:

@@ -12,4 +12,13 @@ urlpatterns = [
     path("accounts/login/", auth_views.LoginView.as_view(), name="login"),
     path("accounts/logout/", auth_views.LogoutView.as_view(), name="logout"),
     path("", views.patients, name="patients"),
+    path("patients/<int:patient_id>/", views.patient, name="patient"),
+    path("patients/<int:patient_id>/trend.png", views.patient_trend, name="patient_trend"),
+    path("patients/<int:patient_id>/compare/", views.comparison, name="comparison"),
+    path("visits/<int:visit_id>/", views.visit, name="visit"),
+    path("visits/<int:visit_id>/landmarks", views.correct_landmarks, name="correct_landmarks"),
+    path("rigs/<str:serial>/", views.rig, name="rig"),
+    path("rigs/<str:serial>/stability.svg", views.rig_stability_chart, name="rig_stability_chart"),
+    path("pictures/<str:kind>/<int:pk>/<str:name>.png", views.picture, name="picture"),
+    path("jobs/<uuid:job_id>/rerun", views.rerun, name="rerun"),
 ]

@@ -1,0 +1,155 @@
+"""What a clinic does, on the embedded default: ``python manage.py demo``.
+
+A reduced rig (the simulator's ``tiny`` preset) is registered and calibrated
+from simulated test-field captures; a patient gets a baseline visit, a
+same-day re-scan and a visit four months later with progression. Everything
+goes through the HTTP API (Django's in-process client) and runs as jobs
+(in-process without a broker). The findings are printed, with how to open the
+clinicians' pages.
+"""
+
+import json
+import shutil
+import time
+from pathlib import Path
+
+from django.contrib.auth.models import User
+from django.core.management.base import BaseCommand, CommandError
+from django.db import transaction
+from django.test import Client
+
+from clinic.models import Clinic, Comparison, Job, Member, Patient, Reconstruction, Rig
+
+DEMO_CLINIC = "Demo Scoliosis Clinic"
+DEMO_USER, DEMO_PASSWORD = "demo", "demo-torsoscan"
+
+
+class Command(BaseCommand):
+    help = "Run the clinic's whole flow on a simulated rig and patient (embedded default)."
+
+    def add_arguments(self, parser):
+        parser.add_argument("--out", default="demo-out", help="where the simulated scenario is written")
+        parser.add_argument("--seed", type=int, default=0)
+        parser.add_argument("--reuse", action="store_true", help="reuse a scenario already simulated in --out")
+
+    def say(self, msg):
+        self.stdout.write(msg)
+        self.stdout.flush()
+
+    def api(self, client, method, path, key=None, expect=(200, 201), **kw):
+        extra = {"HTTP_AUTHORIZATION": f"Bearer {key}"} if key else {}
+        if "json" in kw:
+            kw = {"data": json.dumps(kw.pop("json")), "content_type": "application/json"}
+        r = getattr(client, method)(path, **kw, **extra)
+        if r.status_code not in expect:
+            raise CommandError(f"{method.upper()} {path}: {r.status_code} {r.content[:500]!r}")
+        return r.json()
+
+    def upload(self, client, key, folder: Path, **extra):
+        manifest = json.loads((folder / "capture.json").read_text())
+        s = self.api(client, "post", "/api/sessions", key, json={"manifest": manifest, **extra})
+        for im in manifest["images"]:
+            self.api(client, "put", f"/api/sessions/{s['id']}/images/{im['camera']}", key,
+                     data=(folder / im["file"]).read_bytes(), content_type="application/octet-stream")
+        return self.api(client, "post", f"/api/sessions/{s['id']}/finalize", key)
+
+    def handle(self, *args, out, seed, reuse, **kw):
+        from recon_engine.simulator.config import preset
+        from recon_engine.simulator.scenario import simulate
+
+        t0 = time.perf_counter()
+        scenario = Path(out) / "scenario"
+        if not (reuse and (scenario / "rig.json").exists()):
+            self.say(f"simulating a reduced rig and a patient with a scoliotic curve into {scenario} ...")
+            if scenario.exists():
+                shutil.rmtree(scenario)
+            cfg = preset("tiny", seed=seed, captures=(("visit0-a", 0), ("visit0-b", 0), ("visit1-a", 1)))
+            simulate(scenario, cfg, progress=lambda m: None)
+            self.say(f"  simulated in {time.perf_counter() - t0:.0f} s")
+
+        with transaction.atomic():  # a fresh demo clinic each run; other clinics are left alone
+            for c in Clinic.objects.filter(name=DEMO_CLINIC):
+                Rig.objects.filter(clinic=c).delete()
+                c.delete()
+            rig_serial = json.loads((scenario / "rig.json").read_text())["serial"]
+            Rig.objects.filter(serial=rig_serial).delete()
+            clinic = Clinic.objects.create(name=DEMO_CLINIC)
+            user = User.objects.filter(username=DEMO_USER).first() or User.objects.create_user(DEMO_USER)
+            user.set_password(DEMO_PASSWORD)
+            user.save()
+            Member.objects.create(clinic=clinic, user=user, role=Member.ADMINISTRATOR)
+
+        client = Client()
+        if not client.login(username=DEMO_USER, password=DEMO_PASSWORD):
+            raise CommandError("the demo user cannot log in")
+        self.say("registering the rig and its test field through the API ...")
+        self.api(client, "post", "/api/testfields",
+                 json={"clinic": clinic.pk, "testfield": json.loads((scenario / "testfield.json").read_text())})
+        key = self.api(client, "post", "/api/rigs", json={
+            "clinic": clinic.pk, "rig": json.loads((scenario / "rig.json").read_text())})["key"]
+
+        poses = sorted((scenario / "captures").glob("testfield-pose*"))
+        self.say(f"uploading {len(poses)} test-field poses; the last one starts the calibration job ...")
+        for folder in poses:
+            s = self.upload(client, key, folder, calibration_set="demo", poses=len(poses))
+        job = Job.objects.get(uid=s["jobs"][0]["id"])
+        if job.state != Job.SUCCEEDED:
+            raise CommandError(f"calibration failed: {job.error}")
+        calib = job.calibration_result
+        rms = [v for v in calib.figures["residual_rms_px"].values() if v is not None]
+        self.say(f"  calibrated {len(rms)} cameras: residual RMS {min(rms):.3f}-{max(rms):.3f} px, "
+                 f"sigma0 {calib.figures['sigma0']:.2f}")
+
+        patient = self.api(client, "post", "/api/patients", json={
+            "clinic": clinic.pk, "identifier": "DEMO-001", "name": "Alex Example", "date_of_birth": "2013-03-14",
+            "sex": "F", "notes": "Right thoracic curve, under observation."})
+        baseline = self.api(client, "post", f"/api/patients/{patient['id']}/visits",
+                            json={"date": "2026-07-20", "reason": "baseline"})
+        later = self.api(client, "post", f"/api/patients/{patient['id']}/visits",
+                         json={"date": "2026-11-20", "reason": "4-month follow-up"})
+        for name, visit, what in (("visit0-a", baseline, "baseline"), ("visit0-b", baseline, "same-day re-scan"),
+                                  ("visit1-a", later, "four months later")):
+            self.say(f"uploading the {what} ({name}) image by image; the reconstruction job runs ...")
+            s = self.upload(client, key, scenario / "captures" / name, visit=visit["id"])
+            job = Job.objects.get(uid=s["jobs"][0]["id"])
+            if job.state != Job.SUCCEEDED:
+                self.say(self.style.WARNING(f"  job {job.state}: {job.error}"))
+                continue
+            rec = job.reconstruction
+            pairs = ", ".join(f"{p['a']}-{p['b']} {p['average_normal_distance_mm']:.3f} mm "
+                              f"({p['matched_fraction']:.0%})" for p in rec.report["registration"]["pairs"]
+                              if p["average_normal_distance_mm"] is not None)
+            ind = rec.indices or {}
+            self.say(f"  torso: {rec.points} points, status {rec.status}; registration {pairs}")
+            if ind:
+                self.say(f"  indices: surface rotation max {ind['surface_rotation_deg']['max']:+.1f} deg, "
+                         f"lateral deviation max {ind['lateral_deviation_mm']['max']:+.1f} mm, "
+                         f"hump {ind['hump_mm']:.1f} mm, trunk imbalance {ind['trunk_imbalance_mm']:+.1f} mm, "
+                         f"asymmetry {ind['asymmetry_mm']:.1f} mm")
+
+        from analysis.repeatability import index_changes
+
+        from clinic.analysis_step import clinic_mdc
+
+        mdc = clinic_mdc(clinic)
+        self.say("\nfindings")
+        for comp in Comparison.objects.filter(later__session__visit__patient_id=patient["id"]).order_by("created"):
+            r = comp.report
+            kind = "same-visit re-scan (repeatability)" if comp.is_repeat else "follow-up against baseline"
+            self.say(f"  {kind}: average normal distance {r['average_normal_distance_mm']:.2f} mm, "
+                     f"{r['matched_fraction']:.0%} matched, signed mean {r['signed_distance_mm']['mean']:+.2f} mm")
+            if comp.is_repeat:
+                continue
+            changes = index_changes(comp.earlier.indices or {}, comp.later.indices or {}, mdc)
+            for k in ("surface_rotation_deg.max", "lateral_deviation_mm.max", "hump_mm", "asymmetry_mm"):
+                c = changes.get(k)
+                if c:
+                    flag = ("BEYOND the MDC" if c["exceeds_mdc"] else
+                            "within the MDC" if c["exceeds_mdc"] is False else "no MDC")
+                    self.say(f"    {k}: {c['earlier']:+.1f} -> {c['later']:+.1f} (change {c['change']:+.1f}, "
+                             f"MDC {c['mdc'] if c['mdc'] is None else round(c['mdc'], 2)}): {flag}")
+        n = Reconstruction.objects.filter(session__visit__patient_id=patient["id"]).count()
+        self.say(f"\n{n} torsos reconstructed in {time.perf_counter() - t0:.0f} s in all.")
+        self.say("Open the clinicians' pages:\n"
+                 "  .venv/bin/python manage.py runserver\n"
+                 f"  http://127.0.0.1:8000/  user {DEMO_USER!r}, password {DEMO_PASSWORD!r}")
