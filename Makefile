@@ -6,24 +6,24 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-SYSDEPS := libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1
+SYSDEPS := libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 chromium
 
 .PHONY: demo test venv sysdeps bench clean
 
 DEMO := demo-out
+# What a clinic does, on the embedded default (SQLite under var/, jobs in-process):
+# a reduced rig calibrated, a patient with a baseline, a re-scan and a follow-up,
+# all through the API; then `.venv/bin/python manage.py runserver` shows the pages.
 demo: $(STAMP)
-	$(VENV)/bin/torsoscan simulate --preset tiny --out $(DEMO)/scenario --force
-	$(VENV)/bin/torsoscan calibrate --rig $(DEMO)/scenario/rig.json --testfield $(DEMO)/scenario/testfield.json \
-		--out $(DEMO)/calibration.json --report $(DEMO)/calibration-report.json $(DEMO)/scenario/captures/testfield-pose*
-	$(VENV)/bin/torsoscan reconstruct --rig $(DEMO)/scenario/rig.json --calibration $(DEMO)/calibration.json \
-		--out $(DEMO)/visit0-a --force $(DEMO)/scenario/captures/visit0-a
+	$(PY) manage.py migrate --noinput
+	$(PY) manage.py demo --out $(DEMO) --seed 11
 
 test: $(STAMP)
 	$(PY) -m pytest -q tests
 
 venv: $(STAMP)
 
-# System libraries that open3d (libusb) and headless pyvista (EGL) load.
+# System libraries that open3d (libusb) and headless pyvista (EGL) load; Chromium for the browser test.
 sysdeps:
 	@missing=""; for p in $(SYSDEPS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	if [ -z "$$missing" ]; then exit 0; fi; \
