@@ -82,17 +82,18 @@ def symmetry_point(x: np.ndarray, profile: np.ndarray, centre: float, cfg: Indic
     if good.sum() < 10:
         return np.nan, np.nan
     xp, dp = x[good], profile[good]
-    cost = np.full(len(cands), np.inf)
-    for k, x0 in enumerate(cands):
-        a = np.interp(x0 + u, xp, dp, left=np.nan, right=np.nan)
-        b = np.interp(x0 - u, xp, dp, left=np.nan, right=np.nan)
-        diff = a - b
-        ok = np.isfinite(diff)
-        if ok.sum() < 0.8 * len(u):
-            continue
-        uu, dd = u[ok], diff[ok]
-        slope = np.sum(dd * uu) / np.sum(uu * uu)
-        cost[k] = np.sqrt(np.mean((dd - slope * uu) ** 2))
+    a = np.interp(cands[:, None] + u[None, :], xp, dp, left=np.nan, right=np.nan)
+    b = np.interp(cands[:, None] - u[None, :], xp, dp, left=np.nan, right=np.nan)
+    diff = a - b
+    ok = np.isfinite(diff)
+    uu = np.where(ok, u[None, :], 0.0)
+    dd = np.where(ok, diff, 0.0)
+    n_ok = ok.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        slope = (dd * uu).sum(axis=1) / (uu * uu).sum(axis=1)
+        res = np.where(ok, dd - slope[:, None] * uu, 0.0)
+        cost = np.sqrt((res ** 2).sum(axis=1) / n_ok)
+    cost = np.where((n_ok >= 0.8 * len(u)) & np.isfinite(cost), cost, np.inf)
     k = int(np.argmin(cost))
     if not np.isfinite(cost[k]):
         return np.nan, np.nan

@@ -25,6 +25,7 @@ from .frame import PatientFrame, detect_posterior, frame_from_posterior
 from .torso import Torso, read_torso
 
 VIEWS = ("back", "side", "top", "front")
+LABELS = {"back": "back", "side": "right side", "top": "top", "front": "front"}
 
 
 def _pv():
@@ -103,7 +104,7 @@ def _point_size(points, size):
 
     extent = float(np.max(points.max(axis=0) - points.min(axis=0)))
     px_per_mm = min(size) / (1.1 * extent)
-    return float(np.clip(1.6 * point_spacing(points) * px_per_mm, 2.0, 12.0))
+    return float(np.clip(3.0 * point_spacing(points) * px_per_mm, 3.0, 14.0))
 
 
 def torso_views(torso: Torso | str, out_dir, frame: PatientFrame | None = None, size=(800, 1000),
@@ -116,7 +117,7 @@ def torso_views(torso: Torso | str, out_dir, frame: PatientFrame | None = None, 
         torso = read_torso(torso)
     frame = frame or default_frame(torso.points)
     ps = _point_size(torso.points, size)
-    return [_render(torso.points, torso.normals, Path(out_dir) / f"torso-{v}.png", frame, v, size, ps, title=f"{v}",
+    return [_render(torso.points, torso.normals, Path(out_dir) / f"torso-{v}.png", frame, v, size, ps, title=LABELS[v],
                     color="#e0b8a0", smooth_shading=True, specular=0.2) for v in views]
 
 
@@ -145,13 +146,13 @@ def _scalar_picture(points, values, out_png, frame, limit_mm, title, bar_title, 
         p.add_mesh(cloud, scalars=bar_title, cmap=cmap, clim=[-limit_mm, limit_mm], nan_color="lightgrey",
                    point_size=ps, render_points_as_spheres=True, show_scalar_bar=False)
         _camera(p, frame, points[keep], v, 0.85 * sub[0] / sub[1])
-        p.add_text(v, position="upper_left", font_size=10, color="black")
+        p.add_text(LABELS[v], position="upper_left", font_size=10, color="black")
     p.subplot(0, len(views) - 1)
-    p.add_scalar_bar(title=bar_title, color="black", vertical=True, n_labels=5, fmt="%+.1f",
-                     position_x=0.84, position_y=0.15, height=0.7, width=0.08)
+    p.add_scalar_bar(title="mm", color="black", vertical=True, n_labels=5, fmt="%+.1f",
+                     position_x=0.86, position_y=0.15, height=0.7, width=0.07)
     if title:
         p.subplot(0, 0)
-        text = title if mdc_mm is None else f"{title}  (MDC {mdc_mm:.2f} mm)"
+        text = f"{title}, mm" if mdc_mm is None else f"{title}, mm  (minimal detectable change {mdc_mm:.2f} mm)"
         p.add_text(text, position="lower_left", font_size=9, color="black")
     Path(out_png).parent.mkdir(parents=True, exist_ok=True)
     p.screenshot(str(out_png))

@@ -151,7 +151,7 @@ class PlaneIndex:
         A point whose foot lies farther than ``max_tangential`` point spacings
         from the nearest surface point is over a hole or beyond the edge.
         """
-        d, nb = self.tree.query(x, k=self.k)
+        d, nb = self.tree.query(x, k=self.k, workers=-1)
         if self.k == 1:
             nb = nb[:, None]
         n = self.torso.normals[nb].mean(axis=1)
@@ -160,6 +160,6 @@ class PlaneIndex:
         r = x - p
         dist = np.sum(r * n, axis=1)
         x0 = x - dist[:, None] * n
-        d0, _ = self.tree.query(x0, k=1)
+        d0, _ = self.tree.query(x0, k=1, workers=-1)
         over = d0 <= max_tangential * self.spacing
         return dist, n, p, over
