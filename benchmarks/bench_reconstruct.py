@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -31,8 +32,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from recon_engine.formats import read_calibration, read_capture, read_rig  # noqa: E402
-from recon_engine.reconstruction import reconstruct_torso  # noqa: E402
-from recon_engine.registration import Transform, pair_fit  # noqa: E402
+from recon_engine.reconstruction import TorsoConfig, reconstruct_torso, register_arms  # noqa: E402
+from recon_engine.registration import ICPatchConfig, Transform, pair_fit  # noqa: E402
 
 from bench_reconstruct_arm import Truth  # noqa: E402
 from bench_simulate import machine  # noqa: E402
@@ -112,6 +113,9 @@ def main() -> int:
     ap.add_argument("--scenario", default="bench-out/paper")
     ap.add_argument("--capture", default="visit0-a")
     ap.add_argument("--calibration", default="bench-out/paper-calibration.json")
+    ap.add_argument("--patch-edge", nargs="*", default=["none", "1.75"],
+                    help="also register the same surfaces with these ICPatchConfig.max_patch_edge values "
+                         "(\"none\": all patches); the default's is not repeated")
     args = ap.parse_args()
     S = Path(args.scenario)
     rig = read_rig(S / "rig.json")
@@ -134,8 +138,13 @@ def main() -> int:
     coverage = float(truth.area[seen2][covered].sum() / truth.area[seen2].sum())
     rep = res["report"]
     reg = rep["registration"]
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                cwd=Path(__file__).parent).stdout.strip()
+    except OSError:
+        commit = "?"
     out = {
-        "machine": machine(),
+        "machine": machine(), "commit": commit,
         "command": " ".join(["benchmarks/bench_reconstruct.py", *sys.argv[1:]]),
         "points": int(len(P)), "rms_mm": float(np.sqrt(np.mean(d ** 2))), "p95_mm": float(np.percentile(d, 95)),
         "max_mm": float(d.max()), "coverage": coverage, "seen_area_cm2": float(truth.area[seen2].sum() / 100),
@@ -160,9 +169,32 @@ def main() -> int:
         out.setdefault("peers", {})[name] = {"seconds": dt, "pairs": fits}
     ours_fits = [{"a": a, "b": b, **pair_fit(surfaces[a], surfaces[b], res["transforms"][a], res["transforms"][b])}
                  for a, b in zip(order, order[1:] + order[:1])]
-    out.setdefault("peers", {})["ours"] = {"seconds": rep["seconds"]["registration"], "pairs": ours_fits}
+    out.setdefault("peers", {})["ours"] = {"seconds": rep["seconds"]["registration"], "pairs": ours_fits,
+                                           "max_patch_edge": ICPatchConfig().max_patch_edge}
+    out["status"], out["problems"], out["warnings"] = rep["status"], rep["problems"], rep["warnings"]
+    out["strength"] = reg.get("strength", {})
+    out["patches"] = {f"{p['a']}-{p['b']}": p.get("patches") for p in reg["pairs"]}
+    # our registration again on the same surfaces with the compact-patch filter set otherwise
+    for edge in args.patch_edge:
+        edge = None if edge.lower() == "none" else float(edge)
+        if edge == ICPatchConfig().max_patch_edge:
+            continue
+        t1 = time.perf_counter()
+        alt = register_arms(surfaces, rep["arms"], rep["failed_arms"], rig, cal,
+                            TorsoConfig(icpatch=ICPatchConfig(max_patch_edge=edge)))
+        dt = time.perf_counter() - t1
+        areg = alt["report"]["registration"]
+        name = f"ours_max_patch_edge_{edge}"
+        out["displacement_error"][name] = displacement_errors(alt["transforms"], D, truth.centroid)
+        out["peers"][name] = {
+            "seconds": alt["report"]["seconds"]["registration"], "with_fusion_and_mesh": dt,
+            "status": alt["report"]["status"], "strength": areg.get("strength", {}),
+            "patches": {f"{p['a']}-{p['b']}": p.get("patches") for p in areg["pairs"]},
+            "pairs": [{"a": a, "b": b, **pair_fit(surfaces[a], surfaces[b], alt["transforms"][a], alt["transforms"][b])}
+                      for a, b in zip(order, order[1:] + order[:1])]}
     Path("bench-out/bench_reconstruct.json").write_text(json.dumps(out, indent=2))
-    print(json.dumps({k: v for k, v in out.items() if k not in ("pairwise", "sigmas")}, indent=1, default=float))
+    print(json.dumps({k: v for k, v in out.items() if k not in ("pairwise", "sigmas", "strength")}, indent=1,
+                     default=float))
     return 0
 
 

@@ -95,3 +95,32 @@ def test_surfaces_that_do_not_fit_fail_the_registration(torso_scenario, tmp_path
     rep = json.loads((tmp_path / "out" / "report.json").read_text())
     assert rc == 3 and rep["status"] == "failed" and rep["problems"]
     assert "REGISTRATION FAILED" in capsys.readouterr().err
+
+
+def test_an_arm_held_only_by_a_weak_overlap_fails_the_torso(torso_scenario):
+    """Arm C's overlap with B removed: C and D hang on A only through D-A's few dozen pairs and can slide."""
+    from scipy.spatial import cKDTree
+
+    from recon_engine.formats import read_calibration, read_capture, read_rig
+    from recon_engine.reconstruction import reconstruct_arm, register_arms
+    from recon_engine.surface import subset
+
+    rig = read_rig(torso_scenario / "rig.json")
+    cal = read_calibration(torso_scenario / "truth" / "calibration.json")
+    cap = read_capture(torso_scenario / "captures" / "visit0-a", rig)
+    surfaces, reports = {}, {}
+    for arm in ("A", "B", "C", "D"):
+        surfaces[arm], reports[arm] = reconstruct_arm(cap, rig, cal, arm)
+    whole = register_arms(surfaces, reports, {}, rig, cal)["report"]
+    assert whole["status"] == "ok", whole["problems"]
+    # every arm held: at the tiny preset C and D, on the weakest overlaps, within ~4x their points' precision
+    for a, st in whole["registration"]["strength"].items():
+        assert st["position_sigma_mm"] < 6 * float(np.median(surfaces[a].data["sigma_mm"]))
+    near_b = cKDTree(surfaces["B"].points).query(surfaces["C"].points)[0] < 15.0
+    surfaces["C"] = subset(surfaces["C"], ~near_b)
+    rep = register_arms(surfaces, reports, {}, rig, cal)["report"]
+    assert rep["status"] == "failed"
+    weak = [p for p in rep["problems"] if "is not held by its overlaps" in p]
+    assert any(p.startswith("arm D ") for p in weak), rep["problems"]
+    # the problem says how far and in which direction (where the slide ends depends on the few pairs left)
+    assert all(" mm (1 sigma) along (" in p and "rotation" in p for p in weak)
