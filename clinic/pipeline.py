@@ -84,10 +84,14 @@ def dispatch(job: Job):
 def rerun(job: Job) -> Job:
     """Put a failed (or finished) job back in the queue; its capture was kept."""
     with transaction.atomic():
-        n = Job.objects.filter(pk=job.pk).exclude(state=Job.RUNNING).update(
+        # a calibration that succeeded is history (stability checks refer to it): calibrate anew instead
+        rerunnable = [Job.FAILED] if job.kind == Job.CALIBRATION else [Job.FAILED, Job.SUCCEEDED]
+        n = Job.objects.filter(pk=job.pk, state__in=rerunnable).update(
             state=Job.QUEUED, stage="", percent=0, error="", finished=None, claimed=None)
         if not n:
-            raise JobError(f"job {job.uid} is running; wait for it to finish")
+            job.refresh_from_db()
+            raise JobError(f"job {job.uid} is {job.state}; only a "
+                           f"{' or '.join(rerunnable)} {job.kind} job can be re-run")
         job.arms.all().delete()
         if job.kind == Job.RECONSTRUCTION:
             Reconstruction.objects.filter(job=job).delete()
