@@ -241,12 +241,18 @@ def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None
             "acceptance_distance_mm": float(dist), "iterations": it, "converged": converged}
 
 
-def smooth_normals(surface: PointSurface, k: int = 30) -> np.ndarray:
-    """Unit normals of the skin around each point: the plane of its ``k`` nearest points, turned like the point's."""
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(surface.points))
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=min(k, max(len(surface.points) - 1, 3))))
-    n = np.asarray(pcd.normals).copy()
-    n[np.sum(n * surface.normals, axis=1) < 0] *= -1
+def smooth_normals(surface: PointSurface, at: np.ndarray, tree=None, k: int = 30) -> np.ndarray:
+    """Unit normals of the skin at the points ``at``: the plane of the surface's ``k`` nearest points.
+
+    Turned like the nearest point's vertex normal (towards the viewer).
+    """
+    tree = tree or cKDTree(surface.points)
+    k = min(k, len(surface.points))
+    _, nb = tree.query(np.asarray(at), k=k)
+    Q = surface.points[nb.reshape(len(at), k)]
+    Q = Q - Q.mean(axis=1, keepdims=True)
+    n = np.linalg.eigh(np.einsum("nki,nkj->nij", Q, Q))[1][:, :, 0]
+    n[np.sum(n * surface.normals[nb.reshape(len(at), k)[:, 0]], axis=1) < 0] *= -1
     return n
 
 
@@ -427,7 +433,6 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
     # A patch's normal tilts with its vertices' noise (tiny preset: by ~0.1 rad), and those tilts seem to hold
     # an arm even along a direction the skin leaves free (a plain cylinder's axis): the formal sigmas above
     # said 0.03 mm for an arm on plain-cylinder overlaps that slid 0.4 mm. Smoothed normals do not.
-    smooth = {a: smooth_normals(surfaces[a]) for a in arms}
     trees = {a: cKDTree(surfaces[a].points) for a in arms}
     centres = {a: T[a].apply(surfaces[a].points.mean(axis=0)) for a in arms}
     Ng = np.zeros((n_par, n_par))
@@ -439,7 +444,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         rel = T[b].inverse().compose(T[a])
         xb = rel.apply(X)
         foot_b = xb - np.sum((xb - p0_loc) * n_loc, axis=1)[:, None] * n_loc
-        n = T[b].rotate(smooth[b][trees[b].query(foot_b)[1]])
+        n = T[b].rotate(smooth_normals(surfaces[b], foot_b, trees[b]))
         x, foot = T[a].apply(X), T[b].apply(foot_b)
         blocks = []
         if a in col:
