@@ -54,11 +54,17 @@ def depth_map(P: np.ndarray, N: np.ndarray, cfg: IndicesConfig, half_width_mm: f
     ix = np.round((B[:, 0] - xs[0]) / g).astype(int)
     iz = np.round((B[:, 2] - zs[0]) / g).astype(int)
     ok = (ix >= 0) & (ix < len(xs)) & (iz >= 0) & (iz < len(zs))
-    # keep the most posterior layer only: an arm in front of nothing is fine, skin behind skin is not the back
+    # keep the most posterior layer of each cell only: skin seen through a gap (the front of a hand, a fold
+    # of the belly facing backwards) lies in front of the back and is not the back
+    iz, ix, B = iz[ok], ix[ok], B[ok]
+    top = np.full((len(zs), len(xs)), -np.inf)
+    np.maximum.at(top, (iz, ix), B[:, 1])
+    layer = B[:, 1] >= top[iz, ix] - cfg.layer_mm
+    iz, ix, B = iz[layer], ix[layer], B[layer]
     s = np.zeros((len(zs), len(xs)))
     c = np.zeros_like(s)
-    np.add.at(s, (iz[ok], ix[ok]), B[ok, 1])
-    np.add.at(c, (iz[ok], ix[ok]), 1.0)
+    np.add.at(s, (iz, ix), B[:, 1])
+    np.add.at(c, (iz, ix), 1.0)
     sigma = cfg.smooth_mm / g
     ss = gaussian_filter(s, sigma, mode="constant")
     cs = gaussian_filter(c, sigma, mode="constant")

@@ -48,6 +48,7 @@ class IndicesConfig:
     facing: str | None = None  # posterior direction in the rig frame, e.g. "+y"; None: detected from the shape
     grid_mm: float = 2.0  # cell of the back's depth map (across and up)
     back_normal_deg: float = 80.0  # points whose outward normal is within this of the posterior direction: the back
+    layer_mm: float = 10.0  # depth map: back points more than this in front of the cell's most posterior one are dropped
     gap_mm: float = 15.0  # a horizontal gap this wide separates the trunk from a hanging arm
     neck_width_ratio: float = 0.5  # VP: the level where the trunk narrows below this fraction of the shoulders
     section_step: float = 0.025  # spacing of the horizontal sections, as a fraction of the VP-SP distance

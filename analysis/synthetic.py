@@ -139,7 +139,10 @@ def synthetic_back(rotation_deg: float = 0.0, lateral_mm: float = 0.0, hump_mm: 
     P = np.vstack(pts)
     if noise_mm:
         P = P + rng.normal(0, noise_mm, P.shape)
-    torso = make_torso(P)
+    # this trunk is star-shaped about its vertical axis: the rule "away from the axis" orients its normals
+    from .torso import estimate_normals, orient_outward
+
+    torso = make_torso(P, orient_outward(P, estimate_normals(P)))
     truth = {"vertebra_prominens_z": z_sp_mm + length_mm, "sacral_point_z": z_sp_mm, "rotation_deg": rotation_deg,
              "lateral_mm": lateral_mm, "hump_mm": hump_mm, "imbalance_mm": imbalance_mm, "apex_z": z_sp_mm + apex * length_mm}
     return torso, truth

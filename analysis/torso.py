@@ -77,11 +77,33 @@ def make_torso(points, normals=None, data=None, cfg: SurfaceConfig | None = None
         normals = None if normals is None else np.asarray(normals)[keep]
         data = {k: np.asarray(v)[keep] for k, v in data.items()}
     if normals is None or not np.isfinite(normals).all():
-        normals = estimate_normals(points, cfg.normal_neighbours)
+        normals = orient_consistently(points, estimate_normals(points, cfg.normal_neighbours), cfg.normal_neighbours)
     else:
+        # given normals (the reconstruction's point towards the cameras, i.e. out of the body) are kept as they are:
+        # a geometric rule fails on arms and between the legs, whose skin faces the trunk
         normals = np.asarray(normals, dtype=float)
         normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-    return Torso(points, orient_outward(points, normals), data, source)
+    return Torso(points, normals, data, source)
+
+
+def orient_consistently(points: np.ndarray, normals: np.ndarray, k: int = 12) -> np.ndarray:
+    """Estimated normals turned consistently over the surface (Open3D's tangent-plane propagation), outward overall.
+
+    Falls back to :func:`orient_outward` (away from the trunk's vertical axis) if the propagation fails.
+    """
+    try:
+        import open3d as o3d
+
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+        pc.normals = o3d.utility.Vector3dVector(orient_outward(points, normals))
+        pc.orient_normals_consistent_tangent_plane(k)
+        n = np.asarray(pc.normals).copy()
+    except Exception:  # noqa: BLE001 - Open3D raises RuntimeError and others; the rule below still works
+        return orient_outward(points, normals)
+    # the whole surface one way or the other: outward where most points say so
+    axis = axis_points(points, points[:, 2])
+    radial = np.sum(n[:, :2] * (points[:, :2] - axis), axis=1)
+    return -n if np.median(np.sign(radial)) < 0 else n
 
 
 def estimate_normals(points: np.ndarray, k: int = 12) -> np.ndarray:
