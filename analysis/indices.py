@@ -62,8 +62,9 @@ def _summary(sections, key):
     return {"rms": rms(vals), "max": signed_max(vals)}
 
 
-def trunk_mask(P: np.ndarray, z_lo: float, z_hi: float, cfg: IndicesConfig, step_mm: float = 4.0) -> np.ndarray:
+def trunk_mask(P: np.ndarray, z_lo: float, z_hi: float, cfg: IndicesConfig, step_mm: float | None = None) -> np.ndarray:
     """Points (patient frame) of the trunk between two heights, arms cut off at the gaps beside the trunk."""
+    step_mm = step_mm or max(4.0, 2.0 * cfg.grid_mm)
     mask = np.zeros(len(P), bool)
     band = (P[:, 2] >= z_lo) & (P[:, 2] <= z_hi)
     idx = np.floor((P[:, 2] - z_lo) / step_mm).astype(int)

@@ -26,8 +26,12 @@ from .backsurface import DepthMap, central_extent, symmetry_point
 from .config import IndicesConfig
 
 
-def width_profile(P: np.ndarray, cfg: IndicesConfig, step_mm: float = 4.0):
-    """Heights (mm) and the trunk's width (mm) there: the gap-free run of x holding the midline (arms cut off)."""
+def width_profile(P: np.ndarray, cfg: IndicesConfig, step_mm: float | None = None):
+    """Heights (mm) and the trunk's width (mm) there: the gap-free run of x holding the midline (arms cut off).
+
+    Bands of ``step_mm`` (default: 4 mm, or two depth-map cells for a sparse cloud).
+    """
+    step_mm = step_mm or max(4.0, 2.0 * cfg.grid_mm)
     lo, hi = P[:, 2].min(), P[:, 2].max()
     zs = np.arange(lo + step_mm / 2, hi, step_mm)
     w = np.full(len(zs), np.nan)

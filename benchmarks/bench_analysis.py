@@ -125,6 +125,25 @@ def part1(out: Path, n_points: int, n_sessions: int = 4) -> dict:
         print(f"{c}: rotation {rep['surface_rotation_deg']['max']:+.2f} deg (applied {tr['apex_rotation_deg']:+.2f}), "
               f"lateral {rep['lateral_deviation_mm']['max']:+.2f} mm (applied {tr['apex_lateral_mm']:+.2f}), "
               f"VP error {res['captures'][c]['vp_error_mm']:.1f} mm, SP error {res['captures'][c]['sp_error_mm']:.1f} mm", flush=True)
+    # what a reconstruction covers: the whole body between 650 and 1450 mm (arms, neck, buttocks), not the torso region
+    for i, c in enumerate(("visit0-a", "visit1-a")):
+        s = subjects[c]
+        V, T = s["vertices"], s["triangles"]
+        cz = V[T].mean(axis=1)[:, 2]
+        tb = scan_surface(V, T, (cz > 650) & (cz < 1450), n_points=int(1.25 * n_points), seed=40 + i)
+        rep = analyse_torso(tb).report
+        tr = truth_at_apex(s, rep)
+        lm_truth = s["landmarks"]
+        res["captures"][c + " (whole body 650-1450 mm)"] = {
+            "points": len(tb), "surface_rotation_max_deg": rep["surface_rotation_deg"]["max"],
+            "applied_rotation_apex_deg": tr["apex_rotation_deg"],
+            "lateral_deviation_max_mm": rep["lateral_deviation_mm"]["max"], "applied_lateral_apex_mm": tr["apex_lateral_mm"],
+            "lateral_deviation_max_with_simulator_depth_mm": lateral_with_depth(rep, simulator_spine_depth(s)),
+            "vp_error_mm": float(np.linalg.norm(np.array(rep["landmarks"]["vertebra_prominens"]["position_mm"]) - lm_truth["vertebra_prominens"])),
+            "sp_error_mm": float(np.linalg.norm(np.array(rep["landmarks"]["sacral_point"]["position_mm"]) - lm_truth["sacral_point"])),
+            "sp_method": rep["landmarks"]["sacral_point"]["method"],
+            "indices": {k: get(rep, k) for k in HEAD}}
+        print(f"{c} whole body: {res['captures'][c + ' (whole body 650-1450 mm)']}", flush=True)
     # severity series at rest in the rig, no sway
     for k, rot in enumerate((0.0, 5.0, 10.0, 15.0, 20.0)):
         s, t = scan(cfg, posture=posture_like(cfg, rot), seed=10 + k, n=n_points)
