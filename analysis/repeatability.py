@@ -68,7 +68,7 @@ def mdc_from_comparisons(reports) -> dict:
     and ``mean_abs``. Figures that are a spread rather than a signed change
     (average normal distance, mean_abs, p05, p95) are not zero without change:
     their MDC is the repeat value plus 1.96 times its spread over the pairs
-    (one pair: the repeat value itself, times 1.5 as a margin).
+    (one pair: the spread is taken as half the repeat value).
     """
     vals = {}
     for r in reports:
