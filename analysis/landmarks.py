@@ -5,7 +5,10 @@ Both are found in the patient frame (x left, y posterior, z up) from the shape:
 - VP, the spinous process of C7, sits at the cervico-thoracic junction, where
   the trunk narrows from the shoulders into the neck: the lowest height above
   the widest level where the trunk's width falls below ``neck_width_ratio`` of
-  the shoulders'; when the surface stops below the neck, the top of the back.
+  the shoulders'; then, when the back's midline is seen above it, refined to
+  where the midline turns fastest from the thoracic kyphosis into the
+  cervical lordosis (its steepest forward slope, within 40 mm below and 60 mm
+  above); when the surface stops below the neck, the top of the back.
 - SP, the sacral point (top of the gluteal cleft, S1–S2), is the most
   posterior point of the back's line of symmetry below the lumbar lordosis:
   the midline profile's deepest point in the lower 60 % of the back, then its
@@ -117,6 +120,28 @@ def find_vp_height(P: np.ndarray, back_mask: np.ndarray, cfg: IndicesConfig) -> 
     return z_top, "top of the back"
 
 
+def find_vp_inflection(zs: np.ndarray, depth: np.ndarray, z_neck: float, below_mm: float = 40.0,
+                       above_mm: float = 60.0) -> float | None:
+    """VP refined on the midline profile: where the back turns fastest from the thoracic kyphosis into the
+    cervical lordosis (steepest forward slope of the midline), near the neck level ``z_neck``.
+
+    None when the profile does not reach far enough above the neck (the surface ends at VP).
+    """
+    d = _smooth(depth, 2)
+    ok = np.isfinite(d)
+    if not ok.any() or zs[ok].max() < z_neck + 20.0:
+        return None
+    z, d = zs[ok], d[ok]
+    slope = np.gradient(d, z)
+    win = (z >= z_neck - below_mm) & (z <= z_neck + above_mm)
+    if win.sum() < 5:
+        return None
+    k = np.nonzero(win)[0][int(np.argmin(slope[win]))]
+    if k in (np.nonzero(win)[0][0], np.nonzero(win)[0][-1]):
+        return None  # no turn inside the window
+    return float(z[k])
+
+
 def find_sp_height(zs: np.ndarray, depth: np.ndarray, z_vp: float) -> tuple[float, str]:
     """Height of SP from the midline depth profile: most posterior point below the lordosis."""
     d = _smooth(depth)
@@ -136,6 +161,10 @@ def detect_landmarks(P: np.ndarray, back_mask: np.ndarray, dmap: DepthMap, cfg: 
     """VP and SP (patient frame, mm) on the back's symmetry line, with how each was found."""
     z_vp, how_vp = find_vp_height(P, back_mask, cfg)
     zs, xs, ds = midline_profile(dmap, cfg)
+    if how_vp == "neck":
+        z_inf = find_vp_inflection(zs, ds, z_vp)
+        if z_inf is not None:
+            z_vp, how_vp = z_inf, "neck inflection"
     seen = zs[np.isfinite(ds)]
     if len(seen) and z_vp > seen.max():
         # the back's midline is not seen up to the neck (a sparse surface): VP at the highest midline point seen
