@@ -40,10 +40,13 @@ class ICPatchConfig:
     tol_translation_mm: float = 1e-3
     tol_scale: float = 1e-5
     estimate_scale: bool = True
-    # patches with an edge longer than this many median edges are not used (None: all). 1.75 brings paper-scale
-    # ICPatch B->A from 0.030 to 0.013 mm against the truth, but at the tiny preset it leaves too little
-    # overlap and a weakly held arm slid off: not the default until registration strength is checked
-    max_patch_edge: float | None = None
+    # patches with an edge longer than this many median edges are not used (None: all): long patches are chords
+    # below the curved skin where an arm sees it obliquely, and their sagitta biases the solution. Paper scale,
+    # visit0-a, our calibration, displacement errors of B, C, D: all patches 0.0028-0.0054 deg, 0.032-0.055 mm;
+    # 2.0: 0.0016-0.0021 deg, 0.026-0.038 mm; 1.75: 0.0016-0.0029 deg, 0.022-0.034 mm; 1.5: 0.0021-0.0032 deg,
+    # 0.015-0.032 mm. Weak overlaps keep all patches (min_compact_pairs), and the torso status checks that
+    # every arm is held (max_position_sigma_factor), so at the tiny preset no arm slides any more.
+    max_patch_edge: float | None = 1.75
     # a pair keeps the compact patches only if they give at least this share of the pairs all patches give
     # and at least min_compact_pairs; otherwise its overlap lies where only long patches are, or it is weak
     # anyway (tiny preset: B-C 26 pairs, 20 compact, which fell below min_pairs in the adjustment and let
