@@ -130,7 +130,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scenario", type=Path, required=True)
     ap.add_argument("--capture", default="visit0-a")
-    ap.add_argument("--jobs", type=int, default=3, help="reconstruction jobs per worker count")
+    ap.add_argument("--jobs", type=int, default=3, help="reconstruction jobs per worker count (0: upload and polling only)")
     ap.add_argument("--out", type=Path, default=ROOT / "bench-out" / "service.json")
     ap.add_argument("--workers", default="1,2")
     args = ap.parse_args(argv)
@@ -175,13 +175,14 @@ def main(argv=None):
         api = HttpApi(f"http://127.0.0.1:{port}")
         api.login("tech", "pw-tech")
         key = register_rig(api, 1, args.scenario)
-        workers = start_workers(env, 2, logdir, "cal")
-        t0 = time.perf_counter()
-        cal = calibrate_set(api, key, args.scenario, "bench")
-        result["calibration_job_s"] = round(time.perf_counter() - t0, 1)
-        assert cal["state"] == "succeeded", cal
-        stop(workers)
-        workers = []
+        if args.jobs:
+            workers = start_workers(env, 2, logdir, "cal")
+            t0 = time.perf_counter()
+            cal = calibrate_set(api, key, args.scenario, "bench")
+            result["calibration_job_s"] = round(time.perf_counter() - t0, 1)
+            assert cal["state"] == "succeeded", cal
+            stop(workers)
+            workers = []
 
         folder = args.scenario / "captures" / args.capture
         sid, nbytes, secs = upload(api, key, folder, visit=1)
@@ -198,6 +199,8 @@ def main(argv=None):
         print("polling:", result["polling_requests_per_second"], flush=True)
 
         result["jobs"] = {}
+        if not args.jobs:
+            return
         sessions = [sid] + [upload(api, key, folder, visit=1)[0] for _ in range(args.jobs * 2 - 1)]
         for n in [int(x) for x in args.workers.split(",")]:
             batch, sessions = sessions[:args.jobs], sessions[args.jobs:]
@@ -216,9 +219,9 @@ def main(argv=None):
             print(f"{n} worker(s):", result["jobs"][f"{n}_workers"], flush=True)
     finally:
         stop(workers + [server])
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2))
-    print(json.dumps(result, indent=2))
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(result, indent=2))
+        print(json.dumps(result, indent=2))
 
 
 if __name__ == "__main__":
