@@ -61,9 +61,10 @@ class ICPatchConfig:
     max_average_distance_mm: float = 0.5  # a pair fitting worse than this (or 3x the points' precision) failed
     # an arm is not held when the adjustment leaves any point of its surface less certain than this many
     # times its points' median precision (1 sigma, weakest direction; see arm_strength). Measured (visit0-a,
-    # position sigma / point precision): tiny preset 0.55-0.6 for B, 2.8-3.4 for the weakly overlapping C
-    # and D (their true error 1.1-1.35 mm against 0.44 mm points), and 11-15 where C and D slid 7-76 mm
-    # after the weak pair B-C dropped out; paper scale: see the limit's comment in docs/benchmarks.md
+    # position sigma / point precision): paper scale 0.17-0.27 (0.012-0.020 mm on 0.07 mm points); tiny
+    # preset 0.6-0.7 for B, 3.0-3.7 for the weakly overlapping C and D (their true errors 1.1-1.35 mm on
+    # 0.44 mm points), and 15-34 where C and D slid 6.6-76 mm after the weak pair B-C dropped out. 6 lies
+    # between, and stays far above what the paper scale needs (limit there ~0.43 mm)
     max_position_sigma_factor: float = 6.0
 
 
