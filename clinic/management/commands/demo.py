@@ -133,6 +133,9 @@ class Command(BaseCommand):
 
         mdc = clinic_mdc(clinic)
         self.say("\nfindings")
+        self.say("  (the demo's reduced rig gives sparse torsos, about 5 mm between points, and its MDC comes from\n"
+                 "   a single re-scan: the figures show the workflow, not the scanner's accuracy; see\n"
+                 "   docs/analysis.md for the paper-scale validation)")
         for comp in Comparison.objects.filter(later__session__visit__patient_id=patient["id"]).order_by("created"):
             r = comp.report
             kind = "same-visit re-scan (repeatability)" if comp.is_repeat else "follow-up against baseline"
