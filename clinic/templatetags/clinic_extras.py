@@ -35,3 +35,12 @@ def percent(value):
     if value is None:
         return "–"
     return f"{100 * float(value):.1f} %"
+
+
+@register.filter
+def xyz(values):
+    """A point as "x y z" (mm, one decimal), or "" when it is unknown."""
+    try:
+        return " ".join(f"{float(v):.1f}" for v in values)
+    except (TypeError, ValueError):
+        return ""
