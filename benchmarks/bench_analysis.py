@@ -46,6 +46,7 @@ from recon_engine.simulator.posed import posed_subject, posture_like  # noqa: E4
 
 CAPTURES = ("visit0-a", "visit0-b", "visit1-a")
 HEAD = ("lateral_deviation_mm.max", "lateral_deviation_mm.rms", "surface_rotation_deg.max", "surface_rotation_deg.rms",
+        "section_rotation_deg.max", "section_rotation_deg.rms",
         "hump_mm", "hump_angle_deg", "trunk_imbalance_mm", "asymmetry_mm", "trunk_length_mm")
 
 
@@ -67,8 +68,11 @@ def truth_at_apex(subject, rep):
 
 def lateral_with_depth(rep, depth_mm):
     """Signed max of the spine-midline deviation recomputed with another skin-to-spine depth (mm)."""
-    v = [s["symmetry_line_deviation_mm"] + depth_mm * np.sin(np.radians(s["surface_rotation_deg"]))
-         for s in rep["sections"]]
+    def rot(s):  # the rotation the spine-midline model uses (the section's, else the surface's)
+        r = s.get("section_rotation_deg", float("nan"))
+        return r if np.isfinite(r) else s["surface_rotation_deg"]
+
+    v = [s["symmetry_line_deviation_mm"] + depth_mm * np.sin(np.radians(rot(s))) for s in rep["sections"]]
     v = np.asarray(v)
     return float(v[np.nanargmax(np.abs(v))])
 
@@ -113,6 +117,7 @@ def part1(out: Path, n_points: int, n_sessions: int = 4) -> dict:
         res["captures"][c] = {
             "points": len(torsos[c]), "seconds": round(time.perf_counter() - t0, 1),
             "surface_rotation_max_deg": rep["surface_rotation_deg"]["max"], "applied_rotation_apex_deg": tr["apex_rotation_deg"],
+            "section_rotation_max_deg": rep["section_rotation_deg"]["max"],
             "applied_rotation_at_measured_level_deg": tr["rotation_deg"],
             "lateral_deviation_max_mm": rep["lateral_deviation_mm"]["max"], "applied_lateral_apex_mm": tr["apex_lateral_mm"],
             "applied_lateral_at_measured_level_mm": tr["lateral_mm"],
@@ -122,7 +127,8 @@ def part1(out: Path, n_points: int, n_sessions: int = 4) -> dict:
         depth = simulator_spine_depth(subjects[c])
         res["captures"][c]["simulator_spine_depth_mm"] = depth
         res["captures"][c]["lateral_deviation_max_with_simulator_depth_mm"] = lateral_with_depth(rep, depth)
-        print(f"{c}: rotation {rep['surface_rotation_deg']['max']:+.2f} deg (applied {tr['apex_rotation_deg']:+.2f}), "
+        print(f"{c}: rotation {rep['surface_rotation_deg']['max']:+.2f} deg, section {rep['section_rotation_deg']['max']:+.2f} deg "
+              f"(applied {tr['apex_rotation_deg']:+.2f}), "
               f"lateral {rep['lateral_deviation_mm']['max']:+.2f} mm (applied {tr['apex_lateral_mm']:+.2f}), "
               f"VP error {res['captures'][c]['vp_error_mm']:.1f} mm, SP error {res['captures'][c]['sp_error_mm']:.1f} mm", flush=True)
     # what a reconstruction covers: the whole body between 650 and 1450 mm (arms, neck, buttocks), not the torso region
@@ -136,6 +142,7 @@ def part1(out: Path, n_points: int, n_sessions: int = 4) -> dict:
         lm_truth = s["landmarks"]
         res["captures"][c + " (whole body 650-1450 mm)"] = {
             "points": len(tb), "surface_rotation_max_deg": rep["surface_rotation_deg"]["max"],
+            "section_rotation_max_deg": rep["section_rotation_deg"]["max"],
             "applied_rotation_apex_deg": tr["apex_rotation_deg"],
             "lateral_deviation_max_mm": rep["lateral_deviation_mm"]["max"], "applied_lateral_apex_mm": tr["apex_lateral_mm"],
             "lateral_deviation_max_with_simulator_depth_mm": lateral_with_depth(rep, simulator_spine_depth(s)),
@@ -161,6 +168,7 @@ def part1(out: Path, n_points: int, n_sessions: int = 4) -> dict:
     rep = analyse_torso(t).report
     tr = truth_at_apex(s, rep)
     res["no_prominence_10deg"] = {"surface_rotation_max_deg": rep["surface_rotation_deg"]["max"],
+                                  "section_rotation_max_deg": rep["section_rotation_deg"]["max"],
                                   "applied_rotation_apex_deg": tr["apex_rotation_deg"],
                                   "lateral_deviation_max_mm": rep["lateral_deviation_mm"]["max"],
                                   "applied_lateral_apex_mm": tr["apex_lateral_mm"],

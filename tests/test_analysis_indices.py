@@ -63,6 +63,37 @@ def test_surface_rotation_at_apex(rotated):
     assert abs(rep["lateral_deviation_mm"]["max"]) < 3.0
 
 
+def test_section_rotation_at_apex(rotated, straight):
+    rep = rotated[0].report
+    assert rep["section_rotation_deg"]["max"] == pytest.approx(10.0, abs=0.5)
+    assert abs(rep["apex"]["section_rotation"]["z_mm"] - rotated[1]["apex_z"]) < 40
+    assert abs(straight[0].report["section_rotation_deg"]["max"]) < 0.5
+    b, _ = _run(rotation_deg=-10.0)
+    assert b.report["section_rotation_deg"]["max"] == pytest.approx(-10.0, abs=0.5)
+
+
+def test_section_rotation_little_affected_by_a_hump():
+    # a 5 mm hump 70 mm right of the spine on a 10-degree section: the skin at the symmetry line tilts by
+    # about 2 degrees more, the whole section's axis of symmetry by well under one
+    a, _ = _run(rotation_deg=10.0, hump_mm=5.0)
+    rep = a.report
+    assert rep["surface_rotation_deg"]["max"] > 11.5
+    assert rep["section_rotation_deg"]["max"] == pytest.approx(10.0, abs=0.7)
+
+
+def test_section_rotation_of_a_turned_ellipse():
+    from analysis.indices import section_rotation
+
+    th = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    Q = np.column_stack([140 * np.cos(th), 95 * np.sin(th)])
+    Nn = np.column_stack([np.cos(th) / 140, np.sin(th) / 95])
+    Nn /= np.linalg.norm(Nn, axis=1)[:, None]
+    a = np.radians(-8.0)  # turned clockwise seen from above (x left, y posterior): the right back comes backwards
+    Rz = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    got = section_rotation(Q @ Rz.T + [5.0, 3.0], 5.0, Nn @ Rz.T)
+    assert got == pytest.approx(8.0, abs=0.05)
+
+
 def test_lateral_deviation_signed_right():
     a, truth = _run(lateral_mm=10.0)
     rep = a.report
