@@ -39,6 +39,7 @@ INDEX_ROWS = [
     ("lateral_deviation_mm.rms", "Lateral deviation, RMS", "mm"),
     ("surface_rotation_deg.max", "Surface rotation, max", "°"),
     ("surface_rotation_deg.rms", "Surface rotation, RMS", "°"),
+    ("section_rotation_deg.max", "Section rotation, max", "°"),
     ("hump_mm", "Rib / lumbar hump", "mm"),
     ("trunk_imbalance_mm", "Trunk imbalance", "mm"),
     ("asymmetry_mm", "Asymmetry (mirror)", "mm"),
