@@ -19,7 +19,6 @@ import http.client
 import json
 import os
 import platform
-import socket
 import subprocess
 import sys
 import threading
@@ -29,13 +28,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tests.service_flow import HttpApi, calibrate_set, register_rig, wait_for_job  # noqa: E402
-
-
-def free_port():
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from tests.service_flow import (HttpApi, calibrate_set, free_port, register_rig,  # noqa: E402
+                                stop_processes, wait_for_job, wait_for_port)
 
 
 def peak_rss_mib(pid: int) -> float:
@@ -69,16 +63,6 @@ def start_workers(env, n, logdir, tag):
                               "--without-mingle", "-Q", env["CELERY_QUEUE"]],
                              cwd=ROOT, env=env, stdout=open(logdir / f"worker{k}-{tag}.log", "w"),
                              stderr=subprocess.STDOUT) for k in range(n)]
-
-
-def stop(procs):
-    for p in procs:
-        p.terminate()
-    for p in procs:
-        try:
-            p.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            p.kill()
 
 
 def upload(api, key, folder, **extra):
@@ -166,12 +150,7 @@ def main(argv=None):
                          f"Python {platform.python_version()}"}
     workers = []
     try:
-        for _ in range(300):
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=1).close()
-                break
-            except OSError:
-                time.sleep(0.1)
+        wait_for_port(port)
         api = HttpApi(f"http://127.0.0.1:{port}")
         api.login("tech", "pw-tech")
         key = register_rig(api, 1, args.scenario)
@@ -181,7 +160,7 @@ def main(argv=None):
             cal = calibrate_set(api, key, args.scenario, "bench")
             result["calibration_job_s"] = round(time.perf_counter() - t0, 1)
             assert cal["state"] == "succeeded", cal
-            stop(workers)
+            stop_processes(workers)
             workers = []
 
         folder = args.scenario / "captures" / args.capture
@@ -210,7 +189,7 @@ def main(argv=None):
             job_ids = [finalize(api, key, s) for s in batch]
             done = [wait_for_job(api, key, j, timeout=7200) for j in job_ids]
             wall = time.perf_counter() - t0
-            stop(workers)
+            stop_processes(workers)
             workers = []
             states = [d["state"] for d in done]
             result["jobs"][f"{n}_workers"] = {"jobs": len(batch), "wall_s": round(wall, 1),
@@ -218,7 +197,7 @@ def main(argv=None):
                                               "states": states}
             print(f"{n} worker(s):", result["jobs"][f"{n}_workers"], flush=True)
     finally:
-        stop(workers + [server])
+        stop_processes(workers + [server])
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(result, indent=2))
         print(json.dumps(result, indent=2))

@@ -11,6 +11,7 @@ do, and keeps their files and pictures in storage:
 """
 
 import json
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -22,8 +23,8 @@ from .models import Comparison, Reconstruction
 
 def _local(field_or_name, dest: Path) -> Path:
     name = getattr(field_or_name, "name", field_or_name)
-    with default_storage.open(name, "rb") as src:
-        dest.write_bytes(src.read())
+    with default_storage.open(name, "rb") as src, open(dest, "wb") as out:
+        shutil.copyfileobj(src, out, 1 << 20)
     return dest
 
 

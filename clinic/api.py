@@ -29,8 +29,8 @@ from ninja.security import HttpBearer, django_auth
 from recon_engine.formats import FormatError, check_zip_members, decode_image, parse_capture_manifest, rig_from_dict
 
 from . import pipeline
-from .models import (CaptureImage, CaptureSession, Clinic, Job, Member, Patient, Reconstruction, Rig, RigKey,
-                     TestField, Visit, clinics_of)
+from .models import (CaptureImage, CaptureSession, Job, Member, Patient, Reconstruction, Rig, RigKey, TestField,
+                     Visit, clinics_of, image_path)
 
 CHUNK = 1 << 20
 
@@ -186,11 +186,15 @@ def _check_image(tmp, rig, image: CaptureImage, where: str):
     tmp.seek(0)
 
 
-def _create_session(rig: Rig, body: SessionIn, idempotency_key: str):
+def _idempotency_key(request, manifest: dict) -> str:
+    """What identifies a retried request: the rig's ``Idempotency-Key`` header, else the manifest's checksum."""
+    return request.headers.get("Idempotency-Key", "") or "manifest:" + _canonical_sha256(manifest)
+
+
+def _create_session(rig: Rig, body: SessionIn, key: str):
     """(session, created). A retried request (same key or same manifest) finds the first session."""
     engine_rig = rig_from_dict(rig.description, f"rig {rig.serial}")
     capture = parse_capture_manifest(body.manifest, "capture.json", engine_rig)
-    key = idempotency_key or "manifest:" + _canonical_sha256(body.manifest)
     existing = CaptureSession.objects.filter(rig=rig, idempotency_key=key).first()
     if existing is not None:
         return existing, False
@@ -279,7 +283,7 @@ def create_session(request, body: SessionIn):
     serial = body.manifest.get("rig")
     if serial != rig.serial:
         raise ApiError(403, f"this key belongs to rig {rig.serial}; the manifest names rig {serial!r}")
-    session, created = _create_session(rig, body, request.headers.get("Idempotency-Key", ""))
+    session, created = _create_session(rig, body, _idempotency_key(request, body.manifest))
     return _respond(request, _session_out(session), 201 if created else 200)
 
 
@@ -300,7 +304,7 @@ def put_image(request, session_id: str, camera: str):
         if image.file:  # a repeated PUT of the same image
             return _respond(request, {"camera": camera, "sha256": digest, "size": size, "stored": "already"}, 200)
         _check_image(tmp, rig_from_dict(s.rig.description, f"rig {s.rig.serial}"), image, image.file_name)
-        name = default_storage.save(pipeline_image_name(s, image), File(tmp))
+        name = default_storage.save(image_path(image, image.file_name), File(tmp))
     with transaction.atomic():
         n = CaptureImage.objects.filter(pk=image.pk, file="", session__state=CaptureSession.OPEN).update(
             file=name, size=size, received=timezone.now())
@@ -311,10 +315,6 @@ def put_image(request, session_id: str, camera: str):
             raise ApiError(409, f"session {s.uid} was finalized meanwhile; the image was not stored")
         return _respond(request, {"camera": camera, "sha256": digest, "size": size, "stored": "already"}, 200)
     return _respond(request, {"camera": camera, "sha256": digest, "size": size, "stored": "now"}, 201)
-
-
-def pipeline_image_name(s: CaptureSession, image: CaptureImage) -> str:
-    return f"captures/{s.rig.serial}/{s.uid}/{image.file_name}"
 
 
 @api.post("/sessions/{session_id}/finalize", auth=RigKeyAuth(), tags=["rig"])
@@ -351,9 +351,8 @@ def upload_bundle(request, visit: Optional[int] = None, calibration_set: Optiona
             body = SessionIn(manifest=manifest, visit=visit, calibration_set=calibration_set, poses=poses)
             engine_rig = rig_from_dict(rig.description, f"rig {rig.serial}")
             capture = parse_capture_manifest(manifest, "bundle.zip!capture.json", engine_rig)
-            existing = CaptureSession.objects.filter(
-                rig=rig, idempotency_key=request.headers.get("Idempotency-Key", "")
-                or "manifest:" + _canonical_sha256(manifest)).first()
+            key = _idempotency_key(request, manifest)
+            existing = CaptureSession.objects.filter(rig=rig, idempotency_key=key).first()
             if existing is not None:
                 return _respond(request, _session_out(existing), 200)
             for im in capture.images:
@@ -375,7 +374,7 @@ def upload_bundle(request, visit: Optional[int] = None, calibration_set: Optiona
                     stored.append(name)
                     checked.append((im, name, n))
                 with transaction.atomic():
-                    session, created = _create_session(rig, body, request.headers.get("Idempotency-Key", ""))
+                    session, created = _create_session(rig, body, key)
                     if not created:
                         raise _AlreadyThere(session)
                     for im, name, n in checked:
@@ -531,5 +530,3 @@ def rerun_job(request, job_id: str):
         raise ApiError(409, str(exc)) from None
     return _job_out(job)
 
-
-__all__ = ["api", "Clinic"]

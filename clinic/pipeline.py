@@ -18,7 +18,7 @@ from django.conf import settings
 from django.core.files import File
 from django.core.files.base import ContentFile
 from django.core.files.storage import default_storage
-from django.db import transaction
+from django.db import InterfaceError, OperationalError, transaction
 from django.db.models import F, Q
 from django.utils import timezone
 
@@ -27,6 +27,9 @@ from recon_engine.formats import FormatError, read_calibration, read_capture, ri
 from .models import ArmTask, Calibration, CaptureSession, Job, Reconstruction, StabilityCheck
 
 log = logging.getLogger(__name__)
+
+# faults worth a retry: the database or the broker briefly unreachable (never the engine's errors)
+TRANSIENT = (OperationalError, InterfaceError, ConnectionError, TimeoutError)
 
 # where each stage's progress starts (percent)
 ARMS_START, REGISTRATION_START, ANALYSIS_START, COMPARISON_START = 5, 70, 85, 92
@@ -137,7 +140,7 @@ def _workdir():
 
 def run_calibration(job_id: int) -> str:
     from recon_engine.calibration import calibrate
-    from recon_engine.formats import read_testfield, write_calibration, write_json
+    from recon_engine.formats import read_testfield, write_calibration
     from recon_engine.stability import compare_calibrations
 
     n = Job.objects.filter(Q(pk=job_id, kind=Job.CALIBRATION) & _claimable()).update(
@@ -369,12 +372,4 @@ def flag_rigs_for_recalibration(now=None) -> list:
             flagged.append(rig.serial)
     return flagged
 
-
-def _transient_errors():
-    from django.db import InterfaceError, OperationalError
-
-    return (OperationalError, InterfaceError, ConnectionError, TimeoutError)
-
-
-TRANSIENT = _transient_errors()
 

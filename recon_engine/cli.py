@@ -290,23 +290,15 @@ def _cmd_reconstruct_arm(args) -> int:
 
 
 def _cmd_reconstruct(args) -> int:
-    from .formats import write_json
     from .reconstruction import reconstruct_torso
-    from .surface import write_ply
+    from .results import write_torso
 
     rig, calibration, capture = _torso_inputs(args)
     out = Path(args.out)
     if out.exists() and any(out.iterdir()) and not args.force:
         raise FileExistsError(f"{out}: already exists and is not empty (use --force to replace its files)")
     result = reconstruct_torso(capture, rig, calibration, progress=lambda m: print(f"  {m}", flush=True))
-    out.mkdir(parents=True, exist_ok=True)
-    frame = result["report"]["frame"]
-    write_ply(out / "torso.ply", result["points"], result["normals"], None,
-              {"sigma_mm": result["sigma_mm"].astype(np.float32), "fused": result["count"].astype(np.int32)},
-              comments=[f"torsoscan torso, mm, frame: {frame}"])
-    V, F = result["mesh"]
-    write_ply(out / "torso-mesh.ply", V, None, F, comments=[f"torsoscan display mesh (Poisson), mm, frame: {frame}"])
-    write_json(out / "report.json", result["report"])
+    write_torso(out, result)
     rep = result["report"]
     print(f"torso: {rep['points']} points, mesh {rep['mesh']['faces']} faces, {rep['seconds']['total']:.1f} s")
     for p in rep["registration"]["pairs"]:

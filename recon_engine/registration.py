@@ -313,6 +313,23 @@ def chain_initial(surfaces: dict, order: list, reference: str, cfg: ICPatchConfi
     return T, results
 
 
+def _pair_blocks(a, b, x, foot, n, col, centres) -> list:
+    """Jacobian blocks ``(column, J)`` of a pair's normal distances for its free arms.
+
+    ``x``: the moving arm's points, ``foot``: their feet on the other arm's
+    patches, ``n``: the patch normals (all in the reference frame, mm). Each
+    arm's 7 parameters (scale, rotation, translation) act about its centre.
+    """
+    blocks = []
+    if a in col:
+        Ya = x - centres[a]
+        blocks.append((col[a], np.column_stack([np.sum(n * Ya, axis=1), np.cross(Ya, n), n])))
+    if b in col:
+        Yb = foot - centres[b]
+        blocks.append((col[b], -np.column_stack([np.sum(n * Yb, axis=1), np.cross(Yb, n), n])))
+    return blocks
+
+
 def multi_surface_registration(surfaces: dict, order: list, reference: str, initial: dict,
                                cfg: ICPatchConfig | None = None, max_points_per_pair: int = 20000,
                                progress=lambda msg: None) -> dict:
@@ -382,13 +399,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             d = d_loc * T[b].scale
             foot = x - d[:, None] * n
             stats[(a, b)] = (d, len(idx), len(idx_all))
-            blocks = []
-            if a in col:
-                Ya = x - centres[a]
-                blocks.append((col[a], np.column_stack([np.sum(n * Ya, axis=1), np.cross(Ya, n), n])))
-            if b in col:
-                Yb = foot - centres[b]
-                blocks.append((col[b], -np.column_stack([np.sum(n * Yb, axis=1), np.cross(Yb, n), n])))
+            blocks = _pair_blocks(a, b, x, foot, n, col, centres)
             for ca, Ja in blocks:
                 rhs[ca:ca + 7] -= Ja.T @ d
                 for cb, Jb in blocks:
@@ -450,13 +461,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         foot_b = xb - np.sum((xb - p0_loc) * n_loc, axis=1)[:, None] * n_loc
         n = T[b].rotate(smooth_normals(surfaces[b], foot_b, trees[b]))
         x, foot = T[a].apply(X), T[b].apply(foot_b)
-        blocks = []
-        if a in col:
-            Ya = x - centres[a]
-            blocks.append((col[a], np.column_stack([np.sum(n * Ya, axis=1), np.cross(Ya, n), n])))
-        if b in col:
-            Yb = foot - centres[b]
-            blocks.append((col[b], -np.column_stack([np.sum(n * Yb, axis=1), np.cross(Yb, n), n])))
+        blocks = _pair_blocks(a, b, x, foot, n, col, centres)
         for ca, Ja in blocks:
             for cb, Jb in blocks:
                 Ng[ca:ca + 7, cb:cb + 7] += Ja.T @ Jb

@@ -10,6 +10,8 @@ image and download the results.
 import hashlib
 import http.cookiejar
 import json
+import socket
+import subprocess
 import time
 import urllib.error
 import urllib.parse
@@ -96,6 +98,33 @@ class HttpApi:
 class _NoRedirect(urllib.request.HTTPRedirectHandler):
     def redirect_request(self, *args, **kwargs):
         return None
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for_port(port: int, tries: int = 300):
+    """Until a server listens on ``port`` of loopback (0.1 s between tries)."""
+    for _ in range(tries):
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=1):
+                return
+        except OSError:
+            time.sleep(0.1)
+
+
+def stop_processes(procs, timeout=60):
+    """Terminate, wait, and kill what does not stop."""
+    for p in procs:
+        p.terminate()
+    for p in procs:
+        try:
+            p.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            p.kill()
 
 
 def sha256(path: Path) -> str:

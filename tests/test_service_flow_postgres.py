@@ -6,24 +6,17 @@ engine; they share the database, the broker and the media folder.
 """
 
 import os
-import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
-from tests.service_flow import HttpApi, assert_same_as_engine, register_rig, run_flow
+from tests.service_flow import (HttpApi, assert_same_as_engine, free_port, register_rig, run_flow,
+                                stop_processes, wait_for_port)
 from tests.services import require_postgres, require_redis
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _free_port():
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _manage(env, *args, **kw):
@@ -56,7 +49,7 @@ def services(tmp_path):
             "Member.objects.create(clinic=c, user=u, role='technician');"
             "p = Patient.objects.create(clinic=c, identifier='P-1', name='Test Patient');"
             "print(c.pk, Visit.objects.create(patient=p).pk)")
-    port = _free_port()
+    port = free_port()
     logs = tmp_path / "logs"
     logs.mkdir()
     procs = [
@@ -67,21 +60,10 @@ def services(tmp_path):
                          cwd=ROOT, env=env, stdout=open(logs / "worker.log", "w"), stderr=subprocess.STDOUT),
     ]
     try:
-        for _ in range(200):
-            try:
-                with socket.create_connection(("127.0.0.1", port), timeout=1):
-                    break
-            except OSError:
-                time.sleep(0.1)
+        wait_for_port(port)
         yield f"http://127.0.0.1:{port}", logs
     finally:
-        for p in procs:
-            p.terminate()
-        for p in procs:
-            try:
-                p.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        stop_processes(procs, timeout=30)
         with psycopg.connect(dbname="postgres", host="127.0.0.1", user="postgres", autocommit=True) as conn:
             conn.execute(f'DROP DATABASE IF EXISTS "{dbname}" WITH (FORCE)')
 
