@@ -143,7 +143,7 @@ class CalibrationAdmin(admin.ModelAdmin):
 
 @admin.register(StabilityCheck)
 class StabilityCheckAdmin(admin.ModelAdmin):
-    list_display = ["camera", "calibration", "reference", "zrot_px", "rot_px", "spr_px", "threshold_px", "stable"]
+    list_display = ["camera", "calibration", "reference", "zrot_px", "rot_px", "spr_px", "arm_px", "threshold_px", "stable"]
     list_filter = ["stable", "camera__rig"]
 
 

@@ -295,7 +295,11 @@ class StabilityCheck(models.Model):
     zrot_px = models.FloatField()
     rot_px = models.FloatField()
     spr_px = models.FloatField()
-    threshold_px = models.FloatField()
+    arm_px = models.FloatField(null=True, blank=True,
+                               help_text="The camera's bundle in its arm's frame (needs two other cameras of the arm)")
+    threshold_px = models.FloatField(help_text="The largest of the measures' thresholds")
+    thresholds = models.JSONField(default=dict, blank=True, help_text="Each measure's threshold (px)")
+    exceeds = models.JSONField(default=list, blank=True, help_text="The measures above their threshold")
     stable = models.BooleanField()
     created = models.DateTimeField(default=timezone.now)
 

@@ -189,8 +189,8 @@ def run_calibration(job_id: int) -> str:
                     StabilityCheck.objects.get_or_create(
                         camera=cameras[cam_id], calibration=record, reference=previous,
                         defaults=dict(zrot_px=m["zrot_px"], rot_px=m["rot_px"], spr_px=m["spr_px"],
-                                      threshold_px=max(thr.values()) if isinstance(thr, dict) else thr,
-                                      stable=m["stable"]))
+                                      arm_px=m.get("arm_px"), threshold_px=max(thr.values()),
+                                      thresholds=thr, exceeds=m["exceeds"], stable=m["stable"]))
                     if not m["stable"]:
                         unstable.append(cam_id)
             rig = job.rig

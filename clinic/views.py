@@ -228,7 +228,7 @@ def rig(request, serial):
 
 @login_required
 def rig_stability_chart(request, serial):
-    """ROT of every camera over the rig's calibrations against its threshold (SVG, drawn on request)."""
+    """Every measure of every camera over the rig's calibrations against its threshold (SVG, drawn on request)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -238,12 +238,14 @@ def rig_stability_chart(request, serial):
     cams = [c for c in r.cameras.all() if c.stability_checks.exists()]
     if not cams:
         raise Http404("no stability check yet")
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6), sharex=True)
-    for ax, (field, title) in zip(axes, (("zrot_px", "ZROT"), ("rot_px", "ROT"), ("spr_px", "SPR"))):
+    fig, axes = plt.subplots(1, 4, figsize=(15, 3.6), sharex=True)
+    measures = (("zrot_px", "ZROT"), ("rot_px", "ROT"), ("spr_px", "SPR"), ("arm_px", "ARM"))
+    for ax, (field, title) in zip(axes, measures):
         for cam in cams:
-            checks = list(cam.stability_checks.select_related("calibration").order_by("calibration__calibrated_at"))
+            checks = [c for c in cam.stability_checks.select_related("calibration").order_by("calibration__calibrated_at")
+                      if getattr(c, field) is not None]
             xs = [c.calibration.calibrated_at for c in checks]
-            ys = [getattr(c, field) / c.threshold_px for c in checks]
+            ys = [getattr(c, field) / (c.thresholds or {}).get(field, c.threshold_px) for c in checks]
             ax.plot(xs, ys, "o-", lw=1, ms=3, label=cam.name)
         ax.axhline(1.0, color="#c0392b", lw=1, ls="--")
         ax.set_title(f"{title} / threshold (above 1: unstable)", fontsize=9)

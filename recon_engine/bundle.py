@@ -104,6 +104,7 @@ class Solution:
     converged: bool = False
     history: list = field(default_factory=list)
     cam_cov: np.ndarray | None = None  # (C, 15, 15) covariance of each camera's parameters (fixed ones zero)
+    cams_cov: np.ndarray | None = None  # (C*15, C*15) joint covariance of all cameras' parameters (fixed ones zero)
 
 
 def project_observations(cams, poses, points, cam, pose, point) -> np.ndarray:
@@ -269,10 +270,13 @@ def adjust(pb: Problem, max_iterations: int = 30, reject_k: float = 4.0, robust_
     cam_sigma = np.zeros_like(cams)
     valid = cam_cols >= 0
     cam_sigma[valid] = sd[cam_cols[valid]]
-    cam_cov = np.zeros((len(cams), N_CAM, N_CAM))
-    for c in range(len(cams)):
-        ids = np.flatnonzero(valid[c])
-        cam_cov[c][np.ix_(ids, ids)] = Q[np.ix_(cam_cols[c, ids], cam_cols[c, ids])] * cov_scale
+    # joint covariance of every camera's parameters: cameras share the test field's poses and
+    # points, so their errors correlate (what a comparison of cameras of one arm propagates)
+    flat_cols = cam_cols.ravel()
+    flat_ok = np.flatnonzero(flat_cols >= 0)
+    cams_cov = np.zeros((flat_cols.size, flat_cols.size))
+    cams_cov[np.ix_(flat_ok, flat_ok)] = Q[np.ix_(flat_cols[flat_ok], flat_cols[flat_ok])] * cov_scale
+    cam_cov = np.stack([cams_cov[c * N_CAM:(c + 1) * N_CAM, c * N_CAM:(c + 1) * N_CAM] for c in range(len(cams))])
     pose_sigma = np.zeros_like(poses)
     k = np.flatnonzero(free_pose)
     for i, p in enumerate(k):
@@ -291,7 +295,7 @@ def adjust(pb: Problem, max_iterations: int = 30, reject_k: float = 4.0, robust_
                 if iop_eop and abs(rho[a, b]) > correlation_warn:
                     correlations.append((c, names[a], names[b], float(rho[a, b])))
     return Solution(cams, poses, points, pb.uv - pred, inlier, float(sigma0), cam_sigma, pose_sigma, point_sigma,
-                    correlations, it_total, converged, history, cam_cov)
+                    correlations, it_total, converged, history, cam_cov, cams_cov)
 
 
 def _apply(dx, cams, poses, points, cam_cols, free_pose, base_pose, base_point):

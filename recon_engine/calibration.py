@@ -272,6 +272,24 @@ def _cameras_from(sol, cam_ids, rig):
     return out
 
 
+def arm_covariance(sol, cam_ids: list, rig: Rig) -> dict:
+    """Per arm: its calibrated cameras and the joint covariance of their parameters.
+
+    ``{arm: {"cameras": [...], "parameters": CAM_NAMES, "matrix": (15 n, 15 n)}}``
+    in px, unitless, rad (Rodrigues vector world→camera) and mm (perspective centre).
+    """
+    out = {}
+    n = bundle.N_CAM
+    for arm in rig.arms:
+        present = [c for c in arm.cameras if c in cam_ids]
+        if not present:
+            continue
+        idx = np.concatenate([np.arange(n) + n * cam_ids.index(c) for c in present])
+        out[arm.id] = {"cameras": present, "parameters": list(bundle.CAM_NAMES),
+                       "matrix": sol.cams_cov[np.ix_(idx, idx)].tolist()}
+    return out
+
+
 def relative_eops(cameras: dict, rig: Rig) -> dict:
     """Each arm's cameras relative to its first camera: R_rel (first→camera), C in the first camera's frame (mm)."""
     out = {}
@@ -346,6 +364,9 @@ def calibrate(captures: list[Capture], rig: Rig, testfield: TestField, cfg: Cali
         "sigmas": {cam_id: dict(zip(bundle.CAM_NAMES, map(float, sol.cam_sigma[i]))) for i, cam_id in enumerate(cam_ids)},
         # covariance of fx, fy, cx, cy, k1, k2, p1, p2, k3 (px and unitless): what stability tests propagate
         "iop_covariance": {cam_id: sol.cam_cov[i][:9, :9].tolist() for i, cam_id in enumerate(cam_ids)},
+        # joint covariance of each arm's cameras (CAM_NAMES per camera, in the arm's order): the
+        # arm-frame stability measure propagates it, because the arm's cameras stay fixed in the arm
+        "arm_covariance": arm_covariance(sol, cam_ids, rig),
         "residual_rms_px": report.residual_rms_px,
         "residual_rms_by_pose_px": report.residual_rms_by_pose_px,
         "sigma0": sol.sigma0,

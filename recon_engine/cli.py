@@ -82,10 +82,11 @@ def _cmd_stability(args) -> int:
     result = compare_calibrations(a, b, threshold_px=args.threshold, criterion=args.criterion)
     write_json(args.out, result)
     for cam_id, m in result["cameras"].items():
-        verdict = "stable" if m["stable"] else "UNSTABLE"
+        verdict = {True: "stable", False: "UNSTABLE", None: "not judged"}[m["stable"]]
         t = m["threshold_px"]
+        arm = f", ARM {m['arm_px']:.3f}/{t['arm_px']:.2f} px" if "arm_px" in m else ""
         print(f"{cam_id}: ZROT {m['zrot_px']:.3f}/{t['zrot_px']:.2f} px, ROT {m['rot_px']:.3f}/{t['rot_px']:.2f} px, "
-              f"SPR {m['spr_px']:.3f}/{t['spr_px']:.2f} px (measure/threshold) {verdict}")
+              f"SPR {m['spr_px']:.3f}/{t['spr_px']:.2f} px{arm} (measure/threshold) {verdict}")
     print(f"wrote {args.out}")
     return 0
 
@@ -210,10 +211,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("captures", nargs="+", metavar="CAPTURE", help="test-field capture bundles (folders or .zip)")
     p.set_defaults(func=_cmd_calibrate)
 
-    p = sub.add_parser("stability", help="compare two calibrations camera by camera (ZROT, ROT, SPR)")
+    p = sub.add_parser("stability", help="compare two calibrations camera by camera (ZROT, ROT, SPR, ARM)")
     p.add_argument("--out", required=True)
     p.add_argument("--threshold", type=float, help="px; default from the calibrations' own residuals")
-    p.add_argument("--criterion", choices=["all", "zrot", "rot", "spr"], default="all",
+    p.add_argument("--criterion", choices=["all", "zrot", "rot", "spr", "arm"], default="all",
                    help="the measure(s) that decide the verdict (default: unstable when any exceeds its threshold)")
     p.add_argument("calibration_a", metavar="CALIBRATION_A.json")
     p.add_argument("calibration_b", metavar="CALIBRATION_B.json")

@@ -27,16 +27,16 @@ def rig_session_2(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def rig_disturbed(tmp_path_factory):
-    """The same rig with two lenses knocked: A3 principal distance +1%, C2 principal point +20 px.
+    """The same rig with two lenses knocked: A3 principal distance +1%, C2 principal point +3 px.
 
-    At the tiny preset (480x320 px, pixels 6.25 times the paper's) a tiny
-    calibration determines the principal point to about 2.5 px (it trades off
-    against the camera's rotation), so the shift must be well above the
-    combined 3.6 px to be resolvable; the benchmark checks the paper's
-    0.1% and 2 px at paper scale.
+    At the tiny preset (480x320 px, pixels 6.25 times the paper's) a
+    calibration determines the principal point only to about 2.5 px (it
+    trades off against the camera's rotation), so ZROT cannot see a 3 px
+    shift; the camera's bundle in its arm (ARM) can. The benchmark checks the
+    paper's 0.1% and 2 px at paper scale.
     """
     return _testfield_only(tmp_path_factory, "disturbed", session=3,
-                           lens_changes=(("A3", "pd", 0.01), ("C2", "pp_x", 20.0)))
+                           lens_changes=(("A3", "pd", 0.01), ("C2", "pp_x", 3.0)))
 
 
 def _calibrate(scenario):
