@@ -126,7 +126,7 @@ def compare_torsos(earlier: Torso, later: Torso, cfg: AnalysisConfig | None = No
 
 
 def _headline(rep: dict) -> dict:
-    return {k: rep[k] for k in ("lateral_deviation_mm", "surface_rotation_deg", "section_rotation_deg", "hump_mm",
+    return {k: rep[k] for k in ("lateral_deviation_mm", "surface_rotation_deg", "spine_lateral_deviation_mm", "midline_rotation_deg", "hump_mm",
                                 "trunk_imbalance_mm", "asymmetry_mm") if k in rep}
 
 

@@ -60,8 +60,9 @@ class IndicesConfig:
     smooth_mm: float = 6.0  # Gaussian smoothing (sigma) of the depth map before profiles are read
     spine_depth_mm: float = 45.0  # skin to vertebral body centre at the symmetry line (adolescent, thoracic):
     # the spine midline is the symmetry line moved by this depth times the sine of the section's rotation
-    spine_rotation: str = "section"  # rotation the spine midline model uses: "section" (whole transverse section,
-    # little affected by a rib hump off the midline) or "surface" (the skin's slope at the symmetry line)
+    spine_rotation: str = "section"  # rotation the spine midline model uses: "section" (surface_rotation_deg, the
+    # whole transverse section, little affected by a rib hump off the midline) or "midline" (midline_rotation_deg,
+    # the skin's slope at the symmetry line, as Formetric)
     section_half_height_mm: float = 4.0  # a transverse section: the trunk's points within this of its height
     section_iterations: int = 30  # mirror registration of a section (2D, robust)
     hump_range_mm: tuple = (20.0, 100.0)  # distances from the symmetry line where the hump is measured

@@ -7,8 +7,9 @@ Pipeline (all in the patient frame of :mod:`analysis.frame`):
 2. the back's depth map (:mod:`analysis.backsurface`);
 3. VP and SP (:mod:`analysis.landmarks`), or the clinician's corrections;
 4. horizontal sections between them; in each, the symmetry point (the line of
-   symmetry), the surface rotation there, the rotation of the whole transverse
-   section, the spine midline estimate, the hump;
+   symmetry) and its lateral deviation, the surface rotation (the whole
+   transverse section's), the skin normal's rotation at the symmetry line
+   (rasterstereography's figure), the spine midline estimate, the hump;
 5. summaries per region and overall, trunk imbalance, whole-torso asymmetry.
 
 Signs: lateral values positive towards the patient's right; surface rotation
@@ -237,10 +238,14 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         sections.append({
             "level": round(float(s), 4), "z_mm": float(z),
             "symmetry_point_mm": float(x0), "symmetry_residual_mm": float(misfit),
-            "symmetry_line_deviation_mm": float(-(x0 - x_line)),
-            "lateral_deviation_mm": float(-(x_spine - x_line)),
-            "surface_rotation_deg": rot,
-            "section_rotation_deg": sec_rot,
+            # the lateral deviation: the line of symmetry's, measured on the skin
+            "lateral_deviation_mm": float(-(x0 - x_line)),
+            # Formetric-style spine midline: the symmetry line moved by a model depth of the spine
+            "spine_lateral_deviation_mm": float(-(x_spine - x_line)),
+            # the whole transverse section's rotation (a rib hump tilts it far less than the midline skin)
+            "surface_rotation_deg": sec_rot,
+            # rasterstereography's surface rotation: the skin normal at the symmetry line
+            "midline_rotation_deg": rot,
             "hump_mm": hump,
             "hump_angle_deg": float(np.degrees(np.arctan2(hump, 2 * u[k]))) if np.isfinite(hump) else float("nan"),
             "depth_mm": float(np.interp(x0, dmap.x, row)),
@@ -275,19 +280,23 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         if sel:
             regions[name] = {"levels": [lo, hi],
                              "lateral_deviation_mm": _summary(sel, "lateral_deviation_mm"),
+                             "spine_lateral_deviation_mm": _summary(sel, "spine_lateral_deviation_mm"),
                              "surface_rotation_deg": _summary(sel, "surface_rotation_deg"),
-                             "section_rotation_deg": _summary(sel, "section_rotation_deg"),
+                             "midline_rotation_deg": _summary(sel, "midline_rotation_deg"),
                              "hump_mm": signed_max([s["hump_mm"] for s in sel])}
-    apex = max(sections, key=lambda s: abs(s["lateral_deviation_mm"]))
-    rot_apex = max(sections, key=lambda s: abs(s["surface_rotation_deg"]))
-    sec_apex = max(sections, key=lambda s: abs(s["section_rotation_deg"]) if np.isfinite(s["section_rotation_deg"]) else -1)
+    def apex_of(key):
+        return max(sections, key=lambda s: abs(s[key]) if np.isfinite(s[key]) else -1)
+
+    apex, spine_apex = apex_of("lateral_deviation_mm"), apex_of("spine_lateral_deviation_mm")
+    rot_apex, mid_apex = apex_of("surface_rotation_deg"), apex_of("midline_rotation_deg")
     lm_rig = {k: frame.to_rig(v) for k, v in lm.items()}
     report = {
         "format": FORMAT,
         "source": torso.source,
         "lateral_deviation_mm": _summary(sections, "lateral_deviation_mm"),
         "surface_rotation_deg": _summary(sections, "surface_rotation_deg"),
-        "section_rotation_deg": _summary(sections, "section_rotation_deg"),
+        "spine_lateral_deviation_mm": _summary(sections, "spine_lateral_deviation_mm"),
+        "midline_rotation_deg": _summary(sections, "midline_rotation_deg"),
         "hump_mm": signed_max([s["hump_mm"] for s in sections]),
         "hump_angle_deg": signed_max([s["hump_angle_deg"] for s in sections]),
         "trunk_imbalance_mm": float(-(vp[0] - sp[0])),
@@ -295,13 +304,14 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         "trunk_length_mm": float(np.linalg.norm(vp - sp)),
         "asymmetry_mm": asym_fig["mean_abs_mm"],
         "asymmetry": asym_fig,
-        "symmetry_line_deviation_mm": _summary(sections, "symmetry_line_deviation_mm"),
         "apex": {"lateral_deviation": {"level": apex["level"], "z_mm": apex["z_mm"],
                                        "value_mm": apex["lateral_deviation_mm"]},
+                 "spine_lateral_deviation": {"level": spine_apex["level"], "z_mm": spine_apex["z_mm"],
+                                             "value_mm": spine_apex["spine_lateral_deviation_mm"]},
                  "surface_rotation": {"level": rot_apex["level"], "z_mm": rot_apex["z_mm"],
                                       "value_deg": rot_apex["surface_rotation_deg"]},
-                 "section_rotation": {"level": sec_apex["level"], "z_mm": sec_apex["z_mm"],
-                                      "value_deg": sec_apex["section_rotation_deg"]}},
+                 "midline_rotation": {"level": mid_apex["level"], "z_mm": mid_apex["z_mm"],
+                                      "value_deg": mid_apex["midline_rotation_deg"]}},
         "landmarks": {k: {"position_mm": lm_rig[k].tolist(), "source": source[k],
                           "method": auto["vp_method" if k == "vertebra_prominens" else "sp_method"]
                           if source[k] == "auto" else "clinician"} for k in LANDMARKS},

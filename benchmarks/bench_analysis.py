@@ -4,7 +4,10 @@ Part 1 (always, fast): the true posed MakeHuman torso of each capture of the
 paper preset, sampled as the rig would measure it (points, 0.07 mm noise,
 holes where fewer than two cameras of an arm see the skin):
 - indices of visit0-a / visit0-b / visit1-a against the applied curve
-  (surface rotation at the apex within 1 deg, lateral deviation within 2 mm);
+  (surface rotation at the apex within 1 deg of the applied axial rotation;
+  lateral deviation of the symmetry line within 2 mm of the simulated skin's
+  own symmetry line, the skin over the spinous processes; the spine-midline
+  model's deviation against the applied spine deviation beside it);
 - a severity series (apex rotation 0..20 deg, lateral deviation in proportion):
   every index must rise monotonically;
 - repeatability: visit0-a vs visit0-b (same visit: sway and breathing only)
@@ -46,7 +49,8 @@ from recon_engine.simulator.posed import posed_subject, posture_like  # noqa: E4
 
 CAPTURES = ("visit0-a", "visit0-b", "visit1-a")
 HEAD = ("lateral_deviation_mm.max", "lateral_deviation_mm.rms", "surface_rotation_deg.max", "surface_rotation_deg.rms",
-        "section_rotation_deg.max", "section_rotation_deg.rms",
+        "spine_lateral_deviation_mm.max", "spine_lateral_deviation_mm.rms", "midline_rotation_deg.max",
+        "midline_rotation_deg.rms",
         "hump_mm", "hump_angle_deg", "trunk_imbalance_mm", "asymmetry_mm", "trunk_length_mm")
 
 
@@ -66,13 +70,30 @@ def truth_at_apex(subject, rep):
     return out
 
 
+def true_symmetry_deviation(subject, rep):
+    """The simulated skin's own symmetry line against the true SP-VP line (mm, + right).
+
+    Returns (signed max over the levels 0.05-0.95, value at the level where the measured maximum lies).
+    """
+    P = np.asarray(subject["symmetry_line"])
+    lm = subject["landmarks"]
+    sp, vp = np.asarray(lm["sacral_point"]), np.asarray(lm["vertebra_prominens"])
+    f = (P[:, 2] - sp[2]) / (vp[2] - sp[2])
+    left = subject["posture"].R @ np.array([1.0, 0.0, 0.0])  # the body's +X is the patient's left
+    dev = -((P - (sp + f[:, None] * (vp - sp))) @ left)
+    inside = (f > 0.05) & (f < 0.95)
+    k = int(np.argmax(np.abs(dev[inside])))
+    order = np.argsort(f)
+    return float(dev[inside][k]), float(np.interp(rep["apex"]["lateral_deviation"]["level"], f[order], dev[order]))
+
+
 def lateral_with_depth(rep, depth_mm):
     """Signed max of the spine-midline deviation recomputed with another skin-to-spine depth (mm)."""
-    def rot(s):  # the rotation the spine-midline model uses (the section's, else the surface's)
-        r = s.get("section_rotation_deg", float("nan"))
-        return r if np.isfinite(r) else s["surface_rotation_deg"]
+    def rot(s):  # the rotation the spine-midline model uses (the section's, else the midline skin's)
+        r = s.get("surface_rotation_deg", float("nan"))
+        return r if np.isfinite(r) else s["midline_rotation_deg"]
 
-    v = [s["symmetry_line_deviation_mm"] + depth_mm * np.sin(np.radians(rot(s))) for s in rep["sections"]]
+    v = [s["lateral_deviation_mm"] + depth_mm * np.sin(np.radians(rot(s))) for s in rep["sections"]]
     v = np.asarray(v)
     return float(v[np.nanargmax(np.abs(v))])
 
@@ -117,19 +138,26 @@ def part1(out: Path, n_points: int, n_sessions: int = 4) -> dict:
         res["captures"][c] = {
             "points": len(torsos[c]), "seconds": round(time.perf_counter() - t0, 1),
             "surface_rotation_max_deg": rep["surface_rotation_deg"]["max"], "applied_rotation_apex_deg": tr["apex_rotation_deg"],
-            "section_rotation_max_deg": rep["section_rotation_deg"]["max"],
+            "midline_rotation_max_deg": rep["midline_rotation_deg"]["max"],
             "applied_rotation_at_measured_level_deg": tr["rotation_deg"],
-            "lateral_deviation_max_mm": rep["lateral_deviation_mm"]["max"], "applied_lateral_apex_mm": tr["apex_lateral_mm"],
+            "lateral_deviation_max_mm": rep["lateral_deviation_mm"]["max"],
+            "true_symmetry_line_max_mm": true_symmetry_deviation(subjects[c], rep)[0],
+            "true_symmetry_line_at_measured_level_mm": true_symmetry_deviation(subjects[c], rep)[1],
+            "spine_lateral_deviation_max_mm": rep["spine_lateral_deviation_mm"]["max"],
+            "applied_lateral_apex_mm": tr["apex_lateral_mm"],
             "applied_lateral_at_measured_level_mm": tr["lateral_mm"],
             "vp_error_mm": float(np.linalg.norm(np.array(rep["landmarks"]["vertebra_prominens"]["position_mm"]) - lm_truth["vertebra_prominens"])),
             "sp_error_mm": float(np.linalg.norm(np.array(rep["landmarks"]["sacral_point"]["position_mm"]) - lm_truth["sacral_point"])),
             "indices": {k: get(rep, k) for k in HEAD}}
         depth = simulator_spine_depth(subjects[c])
         res["captures"][c]["simulator_spine_depth_mm"] = depth
-        res["captures"][c]["lateral_deviation_max_with_simulator_depth_mm"] = lateral_with_depth(rep, depth)
-        print(f"{c}: rotation {rep['surface_rotation_deg']['max']:+.2f} deg, section {rep['section_rotation_deg']['max']:+.2f} deg "
-              f"(applied {tr['apex_rotation_deg']:+.2f}), "
-              f"lateral {rep['lateral_deviation_mm']['max']:+.2f} mm (applied {tr['apex_lateral_mm']:+.2f}), "
+        res["captures"][c]["spine_lateral_deviation_max_with_simulator_depth_mm"] = lateral_with_depth(rep, depth)
+        row = res["captures"][c]
+        print(f"{c}: surface rotation {rep['surface_rotation_deg']['max']:+.2f} deg, midline skin "
+              f"{rep['midline_rotation_deg']['max']:+.2f} deg (applied {tr['apex_rotation_deg']:+.2f}), "
+              f"lateral deviation of the symmetry line {rep['lateral_deviation_mm']['max']:+.2f} mm (true "
+              f"{row['true_symmetry_line_max_mm']:+.2f}), spine midline {rep['spine_lateral_deviation_mm']['max']:+.2f} mm "
+              f"(applied {tr['apex_lateral_mm']:+.2f}), "
               f"VP error {res['captures'][c]['vp_error_mm']:.1f} mm, SP error {res['captures'][c]['sp_error_mm']:.1f} mm", flush=True)
     # what a reconstruction covers: the whole body between 650 and 1450 mm (arms, neck, buttocks), not the torso region
     for i, c in enumerate(("visit0-a", "visit1-a")):
@@ -142,10 +170,13 @@ def part1(out: Path, n_points: int, n_sessions: int = 4) -> dict:
         lm_truth = s["landmarks"]
         res["captures"][c + " (whole body 650-1450 mm)"] = {
             "points": len(tb), "surface_rotation_max_deg": rep["surface_rotation_deg"]["max"],
-            "section_rotation_max_deg": rep["section_rotation_deg"]["max"],
+            "midline_rotation_max_deg": rep["midline_rotation_deg"]["max"],
             "applied_rotation_apex_deg": tr["apex_rotation_deg"],
-            "lateral_deviation_max_mm": rep["lateral_deviation_mm"]["max"], "applied_lateral_apex_mm": tr["apex_lateral_mm"],
-            "lateral_deviation_max_with_simulator_depth_mm": lateral_with_depth(rep, simulator_spine_depth(s)),
+            "lateral_deviation_max_mm": rep["lateral_deviation_mm"]["max"],
+            "true_symmetry_line_max_mm": true_symmetry_deviation(s, rep)[0],
+            "spine_lateral_deviation_max_mm": rep["spine_lateral_deviation_mm"]["max"],
+            "applied_lateral_apex_mm": tr["apex_lateral_mm"],
+            "spine_lateral_deviation_max_with_simulator_depth_mm": lateral_with_depth(rep, simulator_spine_depth(s)),
             "vp_error_mm": float(np.linalg.norm(np.array(rep["landmarks"]["vertebra_prominens"]["position_mm"]) - lm_truth["vertebra_prominens"])),
             "sp_error_mm": float(np.linalg.norm(np.array(rep["landmarks"]["sacral_point"]["position_mm"]) - lm_truth["sacral_point"])),
             "sp_method": rep["landmarks"]["sacral_point"]["method"],
@@ -168,12 +199,13 @@ def part1(out: Path, n_points: int, n_sessions: int = 4) -> dict:
     rep = analyse_torso(t).report
     tr = truth_at_apex(s, rep)
     res["no_prominence_10deg"] = {"surface_rotation_max_deg": rep["surface_rotation_deg"]["max"],
-                                  "section_rotation_max_deg": rep["section_rotation_deg"]["max"],
+                                  "midline_rotation_max_deg": rep["midline_rotation_deg"]["max"],
                                   "applied_rotation_apex_deg": tr["apex_rotation_deg"],
                                   "lateral_deviation_max_mm": rep["lateral_deviation_mm"]["max"],
+                                  "true_symmetry_line_max_mm": true_symmetry_deviation(s, rep)[0],
+                                  "spine_lateral_deviation_max_mm": rep["spine_lateral_deviation_mm"]["max"],
                                   "applied_lateral_apex_mm": tr["apex_lateral_mm"],
-                                  "symmetry_line_deviation_max_mm": rep["symmetry_line_deviation_mm"]["max"],
-                                  "lateral_deviation_max_with_simulator_depth_mm":
+                                  "spine_lateral_deviation_max_with_simulator_depth_mm":
                                       lateral_with_depth(rep, simulator_spine_depth(s))}
     print(f"no rib prominence, 10 deg: {res['no_prominence_10deg']}", flush=True)
     mono = {}

@@ -35,11 +35,12 @@ def healthz(request):
 
 # the indices shown in tables and trends: (key in the flattened torso-indices/1, label, unit)
 INDEX_ROWS = [
-    ("lateral_deviation_mm.max", "Lateral deviation, max", "mm"),
-    ("lateral_deviation_mm.rms", "Lateral deviation, RMS", "mm"),
+    ("lateral_deviation_mm.max", "Lateral deviation of the symmetry line, max", "mm"),
+    ("lateral_deviation_mm.rms", "Lateral deviation of the symmetry line, RMS", "mm"),
     ("surface_rotation_deg.max", "Surface rotation, max", "°"),
     ("surface_rotation_deg.rms", "Surface rotation, RMS", "°"),
-    ("section_rotation_deg.max", "Section rotation, max", "°"),
+    ("spine_lateral_deviation_mm.max", "Spine midline deviation (model), max", "mm"),
+    ("midline_rotation_deg.max", "Rotation of the skin at the symmetry line, max", "°"),
     ("hump_mm", "Rib / lumbar hump", "mm"),
     ("trunk_imbalance_mm", "Trunk imbalance", "mm"),
     ("asymmetry_mm", "Asymmetry (mirror)", "mm"),

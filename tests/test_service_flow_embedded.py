@@ -22,5 +22,7 @@ def test_the_whole_flow_runs_in_process(client, alice, clinic, rig_session_1, ri
     assert cameras == 20 and StabilityCheck.objects.count() == cameras
     # the same rig on another day: every camera stable, so the rig is not flagged
     assert StabilityCheck.objects.filter(stable=True).count() == cameras
+    # every camera has two others in its arm: the ARM measure is stored beside ZROT, ROT and SPR
+    assert StabilityCheck.objects.exclude(arm_px=None).count() == cameras
     assert steps["torso_job"]["percent"] == 100 and steps["torso_job"]["result"]["status"] in ("ok", "partial")
     assert_same_as_engine(tmp_path / "out", rig_session_1)

@@ -85,3 +85,26 @@ def test_growth_and_placement_are_applied():
     V, spine = pose_body(body, SubjectConfig(), Posture(0.0, 0.0, 0.0, 0.02, R, np.array([10.0, 0, 0])))
     assert V[:, 2].max() == pytest.approx(body.vertices[:, 2].max() * 1.02)
     assert np.allclose(spine[:, :2], (body.spine * [1.01, 1.01, 1.02])[:, :2] @ R[:2, :2].T + [10, 0], atol=1e-6)
+
+
+def test_the_true_symmetry_line_turns_with_the_section_about_the_spine():
+    """The skin over the spinous processes: at rest straight behind the spine, turned with the section."""
+    from dataclasses import replace
+
+    from recon_engine.simulator.config import preset
+    from recon_engine.simulator.posed import posed_subject
+
+    cfg = preset("tiny")
+    cfg = replace(cfg, subject=replace(cfg.subject, curve="C", thoracic_apex=0.6, hump_mm_per_deg=0.0))
+    rest = posed_subject(cfg, posture=Posture(0.0, 0.0, 0.0, 0.0, np.eye(3), np.zeros(3)))
+    turned = posed_subject(cfg, posture=Posture(10.0, 0.0, 0.0, 0.0, np.eye(3), np.zeros(3)))
+    spine = rest["spine"]
+    P0, P1 = rest["symmetry_line"], turned["symmetry_line"]
+    x_spine = np.interp(P0[:, 2], spine[:, 2], spine[:, 0])
+    y_spine = np.interp(P0[:, 2], spine[:, 2], spine[:, 1])
+    assert np.allclose(P0[:, 0], x_spine, atol=1e-6) and np.all(P0[:, 1] > y_spine)
+    s = (P0[:, 2] - spine[0, 2]) / (spine[-1, 2] - spine[0, 2])
+    k = np.argmin(np.abs(s - 0.6))
+    depth = P0[k, 1] - y_spine[k]
+    # +rotation (the right back comes backwards) carries the skin over the spine to the patient's left (+X)
+    assert P1[k, 0] - P0[k, 0] == pytest.approx(depth * np.sin(np.radians(10.0)), rel=0.05)

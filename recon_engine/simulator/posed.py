@@ -38,7 +38,10 @@ def posed_subject(cfg: ScenarioConfig, capture: str | None = None, posture: Post
 
     Returns ``{"vertices" (N, 3) mm world, "triangles" (M, 3), "torso_faces" (M,) bool, "spine" (K, 3),
     "posture", "landmarks": {"vertebra_prominens", "sacral_point"} (skin points behind C7 and the sacrum,
-    found as ``simulate`` finds them, mm world), "curve": {"levels", "lateral_mm", "rotation_deg"}}``.
+    found as ``simulate`` finds them, mm world), "curve": {"levels", "lateral_mm", "rotation_deg"},
+    "symmetry_line": (L, 3) mm world}``. The symmetry line is the skin over the spinous processes: the
+    rest body's skin point straight behind the spine at each height, carried through the posture
+    (curve, hump, breathing, sway) with the skin itself.
     """
     if posture is None:
         postures = draw_postures(cfg)
@@ -64,7 +67,30 @@ def posed_subject(cfg: ScenarioConfig, capture: str | None = None, posture: Post
     lateral, rotation = curve_profiles(levels, cfg.subject, posture.rotation_deg, posture.lateral_mm)
     return {"vertices": V, "triangles": body.triangles, "torso_faces": body.torso_faces, "spine": spine,
             "posture": posture, "landmarks": landmarks,
-            "curve": {"levels": levels, "lateral_mm": lateral, "rotation_deg": rotation}}
+            "curve": {"levels": levels, "lateral_mm": lateral, "rotation_deg": rotation},
+            "symmetry_line": _symmetry_line(body, V)}
+
+
+def _symmetry_line(body, V_posed: np.ndarray, n: int = 101) -> np.ndarray:
+    """Posed skin points (L, 3) that lie straight behind the rest body's spine (+Y) from sacrum to C7."""
+    import open3d as o3d
+
+    mesh = o3d.t.geometry.TriangleMesh()
+    mesh.vertex.positions = o3d.core.Tensor(body.vertices.astype(np.float32))
+    mesh.triangle.indices = o3d.core.Tensor(body.triangles.astype(np.int32))
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(mesh)
+    z = np.linspace(body.z_sacrum, body.z_c7, n)
+    start = np.column_stack([np.interp(z, body.spine[:, 2], body.spine[:, 0]),
+                             np.interp(z, body.spine[:, 2], body.spine[:, 1]), z])
+    rays = np.concatenate([start, np.tile([0.0, 1.0, 0.0], (n, 1))], axis=1).astype(np.float32)
+    hit = scene.cast_rays(o3d.core.Tensor(rays))
+    ok = np.isfinite(hit["t_hit"].numpy())
+    tri = body.triangles[hit["primitive_ids"].numpy()[ok].astype(np.int64)]
+    uv = hit["primitive_uvs"].numpy()[ok].astype(float)
+    w = np.column_stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]])
+    # the same barycentric point of the same triangle, on the posed skin
+    return np.einsum("nk,nkd->nd", w, V_posed[tri])
 
 
 def posture_like(cfg: ScenarioConfig, rotation_deg: float, lateral_mm: float | None = None, breathing: float = 0.0,

@@ -144,7 +144,7 @@ class Command(BaseCommand):
             if comp.is_repeat:
                 continue
             changes = index_changes(comp.earlier.indices or {}, comp.later.indices or {}, mdc)
-            for k in ("surface_rotation_deg.max", "section_rotation_deg.max", "lateral_deviation_mm.max", "hump_mm",
+            for k in ("surface_rotation_deg.max", "lateral_deviation_mm.max", "spine_lateral_deviation_mm.max", "hump_mm",
                       "asymmetry_mm"):
                 c = changes.get(k)
                 if c:
