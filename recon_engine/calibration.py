@@ -285,8 +285,9 @@ def arm_covariance(sol, cam_ids: list, rig: Rig) -> dict:
         if not present:
             continue
         idx = np.concatenate([np.arange(n) + n * cam_ids.index(c) for c in present])
-        out[arm.id] = {"cameras": present, "parameters": list(bundle.CAM_NAMES),
-                       "matrix": sol.cams_cov[np.ix_(idx, idx)].tolist()}
+        # 7 significant digits: ample for propagating precision, half the size in calibration.json
+        matrix = [[float(f"{v:.7g}") for v in row] for row in sol.cams_cov[np.ix_(idx, idx)]]
+        out[arm.id] = {"cameras": present, "parameters": list(bundle.CAM_NAMES), "matrix": matrix}
     return out
 
 
