@@ -43,7 +43,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.optimize import least_squares
 
-from .bundle import CAM_NAMES, rodrigues, rotation_to_rvec
+from .bundle import _CAM_STEP, CAM_NAMES, rodrigues, rotation_to_rvec
 from .camera import Camera, distort, pixel_to_normalized, project
 
 CRITERIA = ("zrot", "rot", "spr", "arm")
@@ -158,7 +158,6 @@ def _camera(template: Camera, p) -> Camera:
                    R=rodrigues(p[9:12]), C=np.asarray(p[12:15]))
 
 
-_CAM_STEP = np.array([1e-3, 1e-3, 1e-3, 1e-3, 1e-6, 1e-6, 1e-7, 1e-7, 1e-6, 1e-7, 1e-7, 1e-7, 1e-3, 1e-3, 1e-3])
 _MOTION_STEP = np.array([1e-7, 1e-7, 1e-7, 1e-3, 1e-3, 1e-3])
 
 
@@ -213,7 +212,7 @@ def _fit_motion(cams, motion0, G, iterations: int = 3):
 
 def _jacobians(tm, grid, pa, pb, X_a, motion, distance_mm):
     """d offsets / d (pa, pb, motion) by central differences: (2N, 15), (2N, 15), (2N, 6)."""
-    eye15, eye6 = np.eye(15), np.eye(6)
+    eye15 = np.eye(15)
     Ja = np.column_stack([
         (_offsets(tm, grid, _ray_points(tm, grid, pa + h, distance_mm), pb, motion)
          - _offsets(tm, grid, _ray_points(tm, grid, pa - h, distance_mm), pb, motion)) / (2 * h[k])
@@ -221,10 +220,15 @@ def _jacobians(tm, grid, pa, pb, X_a, motion, distance_mm):
     Jb = np.column_stack([
         (_offsets(tm, grid, X_a, pb + h, motion) - _offsets(tm, grid, X_a, pb - h, motion)) / (2 * h[k])
         for k, h in ((k, eye15[k] * _CAM_STEP[k]) for k in range(15))])
-    G = np.column_stack([
+    return Ja, Jb, _motion_jacobian(tm, grid, X_a, pb, motion)
+
+
+def _motion_jacobian(tm, grid, X_a, pb, motion):
+    """d offsets / d motion (rotation vector rad, mm) by central differences: (2N, 6)."""
+    eye6 = np.eye(6)
+    return np.column_stack([
         (_offsets(tm, grid, X_a, pb, _compose(motion, h)) - _offsets(tm, grid, X_a, pb, _compose(motion, -h))) / (2 * h[k])
         for k, h in ((k, eye6[k] * _MOTION_STEP[k]) for k in range(6))])
-    return Ja, Jb, G
 
 
 def _arm_cov(extra: dict, arm: str, cameras: list):
@@ -271,9 +275,7 @@ def arm_measures(calib_a, calib_b, base_threshold: dict, distance_mm: float = 25
             data[c] = (tm, grid, pa, pb, _ray_points(tm, grid, pa, distance_mm))
         # one linearization point for the whole arm: the motion fitted on all its cameras
         motion0 = _initial_motion([(_camera(d[0], d[2]), _camera(d[0], d[3])) for d in data.values()])
-        G0 = [np.column_stack([
-            (_offsets(d[0], d[1], d[4], d[3], _compose(motion0, h)) - _offsets(d[0], d[1], d[4], d[3], _compose(motion0, -h)))
-            / (2 * h[k]) for k, h in ((k, np.eye(6)[k] * _MOTION_STEP[k]) for k in range(6))]) for d in data.values()]
+        G0 = [_motion_jacobian(d[0], d[1], d[4], d[3], motion0) for d in data.values()]
         motion_all = _fit_motion([(d[0], d[1], d[4], d[3]) for d in data.values()], motion0, G0)
         jac = {c: _jacobians(*data[c][:4], data[c][4], motion_all, distance_mm) for c in members}
         cov_a = _arm_cov(calib_a.extra, arm, members)
