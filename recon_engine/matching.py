@@ -10,7 +10,12 @@ search honest and short:
    subject's depth bounds allow; matches that disagree with their neighbours
    are dropped;
 2. every point searches a short range around the disparity its matched
-   neighbours predict.
+   neighbours predict;
+3. region growing: the points still unmatched search again where the
+   points matched so far predict their disparity, and the stretch and
+   shear of the right window (the local disparity plane's gradient), so
+   matching follows the skin where it turns away from the cameras and its
+   two views foreshorten it differently.
 
 Each match has a subpixel peak (parabola fits across columns and rows), a
 minimum correlation, a uniqueness test (second peak against the first) and a
@@ -51,6 +56,13 @@ class MatchingConfig:
     refine: bool = True  # least-squares matching after the correlation peak
     min_lsm_rho: float = 0.8  # least-squares matching must end at least this correlated
     max_lsm_sigma_px: float = 0.1  # and this precise (x shift, 1-sigma)
+    # stage 3, region growing from the matched points (see match_points)
+    grow_passes: int = 4  # rounds: each one reaches a little further into steep skin
+    grow_radius_px: float = 12.0  # matched points this close predict an unmatched point's disparity plane
+    grow_min_neighbours: int = 4
+    grow_search_px: int = 3  # columns searched either side of the predicted disparity
+    grow_scale_range: tuple = (0.3, 3.0)  # predicted stretches outside this are not tried
+    grow_max_lsm_sigma_px: float = 0.1  # least-squares precision a grown match needs
     chunk: int = 4000  # points per vectorized block (memory)
 
 
@@ -104,7 +116,7 @@ def _parabola(m, l, r):
 
 
 def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.ndarray, radius: int,
-               band: int, window: int, exclude: int = 2, scale=1.0) -> dict:
+               band: int, window: int, exclude: int = 2, scale=1.0, shear=0.0) -> dict:
     """Best NCC match of each left point in the right image around ``x_pred``.
 
     Parameters
@@ -127,6 +139,10 @@ def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.n
         Column spacing of the right window (px per left px): a surface patch
         foreshortened differently in the two views appears stretched along
         the row by this factor; the search steps scale with it.
+    shear : float or (N,) array
+        Column shift of the right window per row below the point (px per
+        row): a surface whose depth changes along the epipolar lines' normal
+        appears sheared by this much.
 
     Returns ``{"xy": (N, 2) right points, "ncc": (N,), "second": (N,),
     "at_edge": (N,) bool}``; ``at_edge`` means the peak lies on the border of
@@ -144,9 +160,10 @@ def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.n
     Lnorm = np.sqrt(np.sum(L * L, axis=(1, 2)))
     x0 = np.round(x_pred)
     sc = np.broadcast_to(np.asarray(scale, dtype=float), (n,))
+    sh = np.broadcast_to(np.asarray(shear, dtype=float), (n,))
     cols = np.arange(-radius - h, radius + h + 1, dtype=float)
     rows = np.arange(-band - h, band + h + 1, dtype=float)
-    sx = x0[:, None, None] + sc[:, None, None] * cols[None, None, :]
+    sx = x0[:, None, None] + sc[:, None, None] * cols[None, None, :] + sh[:, None, None] * rows[None, :, None]
     sy = xy[:, 1, None, None] + rows[None, :, None]
     S = sample_bilinear(right, np.broadcast_to(sx, (n, len(rows), len(cols))),
                         np.broadcast_to(sy, (n, len(rows), len(cols))))
@@ -181,7 +198,7 @@ def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.n
         dy = np.where((kb == 0) | (kb == B - 1), 0.0, dy)
     else:
         dy = np.zeros(n)
-    out = np.column_stack([x0 + sc * (kd + dx - radius), xy[:, 1] - band + kb + dy])
+    out = np.column_stack([x0 + sc * (kd + dx - radius) + sh * (kb + dy - band), xy[:, 1] - band + kb + dy])
     return {"xy": out, "ncc": best.astype(float), "second": second.astype(float), "at_edge": at_edge}
 
 
@@ -193,12 +210,14 @@ def _chunked(fn, n, chunk, **arrays):
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
-def _search(left, right, xy, x_pred, radius, band, window, cfg, scale=1.0):
+def _search(left, right, xy, x_pred, radius, band, window, cfg, scale=1.0, shear=0.0):
     n = len(xy)
     scale = np.broadcast_to(np.asarray(scale, dtype=float), (n,)).copy()
-    return _chunked(lambda **a: ncc_search(left, right, a["xy"], a["x_pred"], radius, band, window, scale=a["scale"]),
+    shear = np.broadcast_to(np.asarray(shear, dtype=float), (n,)).copy()
+    return _chunked(lambda **a: ncc_search(left, right, a["xy"], a["x_pred"], radius, band, window, scale=a["scale"],
+                                           shear=a["shear"]),
                     n, max(1, cfg.chunk * 121 // (window * window * max(1, radius // 8 + 1))), xy=xy, x_pred=x_pred,
-                    scale=scale)
+                    scale=scale, shear=shear)
 
 
 def _plane_prediction(anchors, d_anchor, nb, xy):
@@ -214,6 +233,56 @@ def _plane_prediction(anchors, d_anchor, nb, xy):
     # a plane that strays far from its anchors (a wrong anchor) falls back to the median
     spread = np.ptp(d_anchor[nb], axis=1)
     return np.where(np.abs(pred - med) <= spread + 1.0, pred, med)
+
+
+def _plane_fit(anchors, d_anchor, nb, xy):
+    """Disparity plane through each point's neighbours ``nb``: (value at ``xy``, (N, 2) gradient, fit ok)."""
+    A = np.concatenate([np.ones(nb.shape + (1,)), anchors[nb] - xy[:, None, :]], axis=2)  # (n, k, 3)
+    N = np.einsum("nki,nkj->nij", A, A)
+    b = np.einsum("nki,nk->ni", A, d_anchor[nb])
+    ok = np.linalg.cond(N) < 1e6
+    sol = np.zeros((len(xy), 3))
+    if ok.any():
+        sol[ok] = np.linalg.solve(N[ok], b[ok][..., None])[..., 0]
+    return sol[:, 0], sol[:, 1:], ok
+
+
+def _verify(left, right, xy, r, scale, shear, cfg, max_sigma_px=None):
+    """Checks of NCC matches ``r`` of left points ``xy`` and their least-squares refinement.
+
+    Returns ``(reason, xy_right, ncc)``: reason "" for an accepted match,
+    right points NaN for the others.
+    """
+    n = len(xy)
+    scale = np.broadcast_to(np.asarray(scale, dtype=float), (n,))
+    shear = np.broadcast_to(np.asarray(shear, dtype=float), (n,))
+    reason = np.full(n, "", dtype=object)
+    out_xy = np.full((n, 2), np.nan)
+    # left-right check: the right point matched back into the left image (inverse stretch and shear)
+    back = _search(right, left, r["xy"], xy[:, 0], 2, 1, cfg.window, cfg, scale=1.0 / scale, shear=-shear / scale)
+    lr = np.hypot(back["xy"][:, 0] - xy[:, 0], back["xy"][:, 1] - xy[:, 1])
+    checks = [
+        (r["at_edge"], "peak at the edge of the search range"),
+        (r["ncc"] < cfg.min_ncc, "correlation below the minimum"),
+        (r["second"] >= cfg.uniqueness * r["ncc"], "not unique (second peak too close)"),
+        (lr > cfg.lr_tolerance_px, "left-right check failed"),
+    ]
+    for bad, why in checks:
+        reason[(reason == "") & bad] = why
+    valid = reason == ""
+    out_xy[valid] = r["xy"][valid]
+    out_ncc = np.asarray(r["ncc"], dtype=float).copy()
+    if cfg.refine and valid.any():
+        idx = np.nonzero(valid)[0]
+        lsm = least_squares_refine(left, right, xy[idx], r["xy"][idx], window=cfg.window,
+                                   initial_scale=scale[idx], initial_shear=shear[idx])
+        limit = cfg.max_lsm_sigma_px if max_sigma_px is None else max_sigma_px
+        good = lsm["converged"] & (lsm["rho"] >= cfg.min_lsm_rho) & (lsm["sigma"] <= limit)
+        reason[idx[~good]] = "least-squares matching failed"
+        out_xy[idx[good]] = lsm["xy"][good]
+        out_xy[idx[~good]] = np.nan
+        out_ncc[idx] = lsm["rho"]
+    return reason, out_xy, out_ncc
 
 
 def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_range: tuple[float, float],
@@ -281,37 +350,52 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
         if len(todo) == 0:
             break
     r2 = best
-    # left-right check: the right point matched back into the left image (inverse stretch)
-    back = _search(right, left, r2["xy"], xy[:, 0], 2, 1, cfg.window, cfg, scale=1.0 / r2["scale"])
-    lr = np.hypot(back["xy"][:, 0] - xy[:, 0], back["xy"][:, 1] - xy[:, 1])
     far = np.asarray(dist).reshape(n, -1)[:, -1]
-    checks = [
-        (r2["at_edge"], "peak at the edge of the search range"),
-        (r2["ncc"] < cfg.min_ncc, "correlation below the minimum"),
-        (r2["second"] >= cfg.uniqueness * r2["ncc"], "not unique (second peak too close)"),
-        (lr > cfg.lr_tolerance_px, "left-right check failed"),
-        (far > 6 * cfg.anchor_spacing, "no reliable disparity in the neighbourhood"),
-    ]
-    for bad, why in checks:
-        reason[(reason == "") & bad] = why
-    valid = reason == ""
-    out_xy[valid] = r2["xy"][valid]
-    out_ncc[:] = r2["ncc"]
-    if cfg.refine and valid.any():
-        idx = np.nonzero(valid)[0]
-        lsm = least_squares_refine(left, right, xy[idx], r2["xy"][idx], window=cfg.window,
-                                   initial_scale=r2["scale"][idx])
-        good = lsm["converged"] & (lsm["rho"] >= cfg.min_lsm_rho) & (lsm["sigma"] <= cfg.max_lsm_sigma_px)
-        reason[idx[~good]] = "least-squares matching failed"
-        out_xy[idx[good]] = lsm["xy"][good]
-        out_xy[idx[~good]] = np.nan
-        out_ncc[idx] = lsm["rho"]
+    reason, out_xy, out_ncc = _verify(left, right, xy, r2, r2["scale"], 0.0, cfg)
+    reason[(reason == "") & (far > 6 * cfg.anchor_spacing)] = "no reliable disparity in the neighbourhood"
+    out_xy[reason != ""] = np.nan
+    # stage 3: region growing. Where the skin turns away from the cameras the disparity changes faster than
+    # the anchors' planes follow, and the two views foreshorten it differently; the points matched so far
+    # predict both (disparity, stretch and shear of the right window) right next to each unmatched point
+    for _ in range(cfg.grow_passes):
         valid = reason == ""
+        if valid.sum() < 3 or valid.all():
+            break
+        seeds = xy[valid]
+        d_seed = xy[valid, 0] - out_xy[valid, 0]
+        todo = np.nonzero(~valid)[0]
+        k = min(cfg.neighbours, len(seeds))
+        dist_s, nb = cKDTree(seeds).query(xy[todo], k=k, distance_upper_bound=cfg.grow_radius_px)
+        nb = nb.reshape(len(todo), -1)
+        enough = np.sum(np.isfinite(dist_s.reshape(len(todo), -1)), axis=1) >= cfg.grow_min_neighbours
+        todo, nb = todo[enough], nb[enough]
+        if len(todo) == 0:
+            break
+        # missing neighbours (beyond the radius) repeat the nearest one: it adds nothing to the plane
+        nb = np.where(nb >= len(seeds), nb[:, :1], nb)
+        d_pred, grad, fit = _plane_fit(seeds, d_seed, nb, xy[todo])
+        scale = 1.0 - grad[:, 0]  # x_right = x_left - d(x, y): columns stretch by 1 - dd/dx
+        shear = -grad[:, 1]  # and shift by -dd/dy per row
+        ok = fit & (scale >= cfg.grow_scale_range[0]) & (scale <= cfg.grow_scale_range[1]) & (np.abs(shear) <= 1.0)
+        todo, d_pred, scale, shear = todo[ok], d_pred[ok], scale[ok], shear[ok]
+        if len(todo) == 0:
+            break
+        r3 = _search(left, right, xy[todo], xy[todo, 0] - d_pred, cfg.grow_search_px, cfg.band, cfg.window, cfg,
+                     scale=scale, shear=shear)
+        why, xy3, ncc3 = _verify(left, right, xy[todo], r3, scale, shear, cfg, cfg.grow_max_lsm_sigma_px)
+        won = why == ""
+        reason[todo] = np.where(won, "", why)  # the last attempt's verdict
+        if not won.any():
+            break
+        out_xy[todo[won]] = xy3[won]
+        out_ncc[todo[won]] = ncc3[won]
+    valid = reason == ""
     return {"xy": out_xy, "ncc": out_ncc, "valid": valid, "reason": reason}
 
 
 def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, xy_right: np.ndarray,
-                         window: int = 11, iterations: int = 8, shift_y: bool = True, initial_scale=1.0) -> dict:
+                         window: int = 11, iterations: int = 8, shift_y: bool = True, initial_scale=1.0,
+                         initial_shear=0.0) -> dict:
     """Adaptive least-squares matching (Gruen 1985) of windows already matched to about a pixel.
 
     The right window is an affine image of the left one along the row
@@ -335,6 +419,8 @@ def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarra
     # parameters: a0 a1 a2 b0 b1 b2 gain offset
     p = np.zeros((n, 8))
     p[:, 1] = np.asarray(initial_scale, dtype=float) - 1.0
+    p[:, 2] = np.asarray(initial_shear, dtype=float)
+    start = p[:, :3].copy()
     p[:, 6] = 1.0
     base = np.asarray(xy_right, dtype=float).copy()
     ddx, ddy = dx.reshape(n, -1), dy.reshape(n, -1)
@@ -386,6 +472,8 @@ def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarra
     Lc = L - L.mean(axis=1, keepdims=True)
     rho = np.sum(Rc * Lc, axis=1) / np.maximum(np.sqrt(np.sum(Rc ** 2, axis=1) * np.sum(Lc ** 2, axis=1)), 1e-12)
     moved = np.hypot(p[:, 0], p[:, 3])
-    converged = active & (moved < 1.5) & (np.abs(p[:, 1]) < 0.6) & (np.abs(p[:, 2]) < 0.5) & (p[:, 6] > 0.2)
+    # the shape may change from its start (the correlation's stretch and shear) by this much, no more
+    converged = (active & (moved < 1.5) & (np.abs(p[:, 1] - start[:, 1]) < 0.6) & (np.abs(p[:, 2] - start[:, 2]) < 0.5)
+                 & (p[:, 6] > 0.2))
     out = base + p[:, [0, 3]]
     return {"xy": out, "sigma": sigma, "rho": rho, "converged": converged}

@@ -54,6 +54,7 @@ class ICPatchConfig:
     min_compact_share: float = 0.5
     min_compact_pairs: int = 100
     symmetric: bool = False  # observe each pair in both directions too (no gain measured at paper scale)
+    weight_by_precision: bool = False  # weight each normal distance by its point's and patch's precision
     freeze_after: int = 12  # iterations with fresh point-patch pairs; then they are kept until convergence
     negligible_sigma: float = 0.01  # corrections below this many of their standard deviations have vanished
     overlap_distance_mm: float = 3.0  # a point over a patch interior this close is in the overlap
@@ -168,7 +169,8 @@ def choose_patches(points, normals, indices: tuple, transform: Transform, max_di
 
 def correspondences(points, normals, index: PatchIndex, transform: Transform, max_distance: float,
                     cfg: ICPatchConfig):
-    """Accepted point–patch pairs under ``transform``: (point ids, patch normal, patch vertex, normal distance)."""
+    """Accepted point–patch pairs under ``transform``: (point ids, patch normal, patch vertex, normal distance,
+    patch ids)."""
     x = transform.apply(points)
     pid, inside, n, p0 = index.closest(x, cfg.edge_margin)
     d = np.sum((x - p0) * n, axis=1)
@@ -177,7 +179,7 @@ def correspondences(points, normals, index: PatchIndex, transform: Transform, ma
         cosang = np.sum(transform.rotate(normals) * n, axis=1)
         ok &= cosang >= np.cos(np.radians(cfg.max_normal_angle_deg))
     idx = np.nonzero(ok)[0]
-    return idx, n[idx], p0[idx], d[idx]
+    return idx, n[idx], p0[idx], d[idx], pid[idx]
 
 
 def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None = None,
@@ -201,7 +203,7 @@ def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None
     for it in range(1, cfg.max_iterations + 1):
         if it <= cfg.freeze_after:
             pairs_now = correspondences(X, moving.normals, index, T, dist, cfg)
-        idx, n, p0, _ = pairs_now
+        idx, n, p0 = pairs_now[:3]
         d = np.sum((T.apply(X[idx]) - p0) * n, axis=1)
         if len(idx) < 7:
             raise ValueError(f"ICPatch: only {len(idx)} point-patch pairs within {dist:.1f} mm: "
@@ -226,7 +228,7 @@ def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None
                           and abs(ds) < cfg.tol_scale):
             converged = True
             break
-    idx, n, p0, d = correspondences(X, moving.normals, index, T, dist, cfg)
+    idx, n, p0, d, _ = correspondences(X, moving.normals, index, T, dist, cfg)
     Y = T.apply(X[idx]) - T.apply(centre)
     J = np.column_stack([np.sum(n * Y, axis=1), np.cross(Y, n), n])
     dof = max(len(idx) - (7 if cfg.estimate_scale else 6), 1)
@@ -330,6 +332,25 @@ def _pair_blocks(a, b, x, foot, n, col, centres) -> list:
     return blocks
 
 
+def _pair_weights(moving: PointSurface, fixed: PointSurface, index: PatchIndex, point_ids, patch_ids,
+                  cfg: ICPatchConfig) -> np.ndarray:
+    """Relative weights of point–patch normal distances (mean 1): the inverse of their variance.
+
+    The variance is the point's and its patch's (the plane through three
+    measured points, about a third of their mean variance at the patch's
+    centre), from each point's precision ``sigma_mm``; all ones when the
+    surfaces carry no precision or ``cfg.weight_by_precision`` is off.
+    """
+    n = len(point_ids)
+    if not cfg.weight_by_precision or "sigma_mm" not in (moving.data or {}) or "sigma_mm" not in (fixed.data or {}):
+        return np.ones(n)
+    sa = np.asarray(moving.data["sigma_mm"], float)[point_ids]
+    sb = np.asarray(fixed.data["sigma_mm"], float)[index.surface.faces[patch_ids]]
+    var = sa ** 2 + np.mean(sb ** 2, axis=1) / 3.0
+    w = 1.0 / np.maximum(var, 1e-8)
+    return w / w.mean() if n else w
+
+
 def multi_surface_registration(surfaces: dict, order: list, reference: str, initial: dict,
                                cfg: ICPatchConfig | None = None, max_points_per_pair: int = 20000,
                                progress=lambda msg: None) -> dict:
@@ -369,7 +390,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             T[b].inverse().compose(T[a]), dist[(a, b)], cfg)
     converged = False
     it = 0
-    frozen = {}
+    frozen, weights = {}, {}
     weak = set()
     scale_weight = 0.0 if cfg.estimate_scale else 1e12
     for it in range(1, cfg.max_iterations + 1):
@@ -386,7 +407,10 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
                                                  cfg)
             # after a few iterations the pairs are kept, so the adjustment converges instead of
             # jittering as points at the acceptance limit come and go
-            idx, n_loc, p0_loc, _ = frozen[(a, b)]
+            idx, n_loc, p0_loc = frozen[(a, b)][:3]
+            if it <= cfg.freeze_after:
+                weights[(a, b)] = _pair_weights(surfaces[a], surfaces[b], index[(a, b)], idx_all[idx],
+                                                frozen[(a, b)][4], cfg)
             if len(idx) < cfg.min_pairs:
                 # a pair that barely overlaps says nothing reliable: it is left out (and reported)
                 weak.add((a, b))
@@ -399,11 +423,12 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             d = d_loc * T[b].scale
             foot = x - d[:, None] * n
             stats[(a, b)] = (d, len(idx), len(idx_all))
+            w = weights[(a, b)]
             blocks = _pair_blocks(a, b, x, foot, n, col, centres)
             for ca, Ja in blocks:
-                rhs[ca:ca + 7] -= Ja.T @ d
+                rhs[ca:ca + 7] -= Ja.T @ (w * d)
                 for cb, Jb in blocks:
-                    N[ca:ca + 7, cb:cb + 7] += Ja.T @ Jb
+                    N[ca:ca + 7, cb:cb + 7] += Ja.T @ (w[:, None] * Jb)
         for a in free:
             N[col[a], col[a]] += scale_weight
         # every arm must hang on the reference through pairs that overlap
@@ -454,7 +479,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
     for (a, b) in pairs:
         if (a, b) in weak:
             continue
-        idx, n_loc, p0_loc, _ = frozen[(a, b)]
+        idx, n_loc, p0_loc = frozen[(a, b)][:3]
         X = surfaces[a].points[sample[(a, b)][idx]]
         rel = T[b].inverse().compose(T[a])
         xb = rel.apply(X)
@@ -462,9 +487,10 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         n = T[b].rotate(smooth_normals(surfaces[b], foot_b, trees[b]))
         x, foot = T[a].apply(X), T[b].apply(foot_b)
         blocks = _pair_blocks(a, b, x, foot, n, col, centres)
+        w = weights[(a, b)]
         for ca, Ja in blocks:
             for cb, Jb in blocks:
-                Ng[ca:ca + 7, cb:cb + 7] += Ja.T @ Jb
+                Ng[ca:ca + 7, cb:cb + 7] += Ja.T @ (w[:, None] * Jb)
     for a in free:
         Ng[col[a], col[a]] += scale_weight
     cov_g = s0 ** 2 * np.linalg.pinv(Ng)
@@ -540,7 +566,7 @@ def pair_fit(moving: PointSurface, fixed: PointSurface, T_moving: Transform, T_f
     cfg = cfg or ICPatchConfig()
     rel = T_fixed.inverse().compose(T_moving)
     # all patches: the same measure whichever patches a registration used
-    idx, _, _, d = correspondences(moving.points, moving.normals, PatchIndex(fixed), rel,
+    idx, _, _, d, _ = correspondences(moving.points, moving.normals, PatchIndex(fixed), rel,
                                    max_distance_mm, cfg)
     d = d * T_fixed.scale
     return {"average_normal_distance_mm": float(np.mean(np.abs(d))) if len(d) else None,

@@ -82,3 +82,39 @@ def test_a_shifted_copy_is_matched_at_the_shift():
     v = m["valid"]
     assert v.mean() > 0.8
     assert np.allclose(m["xy"][v, 0], xy[v, 0] - 17, atol=0.01) and np.allclose(m["xy"][v, 1], xy[v, 1], atol=0.01)
+
+
+def _ramp_pair(gradient: float):
+    """A pattern and its right view whose disparity grows ever faster beyond column 100, reaching ``gradient``
+    px/px at column 250: skin that turns away from the cameras."""
+    rng = np.random.default_rng(5)
+    cells = (rng.random((70, 100)) > 0.5).astype(np.float32) * 200 + 20
+    left = cv2.GaussianBlur(np.kron(cells, np.ones((3, 3), np.float32)), (0, 0), 0.8)
+    h, w = left.shape
+
+    def disparity(x):
+        return 17.0 + gradient / 300.0 * np.maximum(x - 100.0, 0.0) ** 2
+
+    # right column xr shows left column xl with xr = xl - d(xl): invert the monotonic map numerically
+    xl_grid = np.linspace(0, w - 1, 20 * w)
+    xr_of_xl = xl_grid - disparity(xl_grid)
+    xr = np.arange(w, dtype=np.float64)
+    xl = np.interp(xr, xr_of_xl, xl_grid, left=-100, right=-100)
+    mapx = np.repeat(xl[None].astype(np.float32), h, axis=0)
+    mapy = np.repeat(np.arange(h, dtype=np.float32)[:, None], w, axis=1)
+    right = cv2.remap(left, mapx, mapy, cv2.INTER_CUBIC, borderValue=0)
+    return left, right, disparity
+
+
+def test_region_growing_follows_steep_skin():
+    left, right, disparity = _ramp_pair(0.5)
+    rng = np.random.default_rng(4)
+    xy = np.column_stack([rng.uniform(20, 250, 1500), rng.uniform(20, 190, 1500)])
+    steep = xy[:, 0] > 160  # the disparity changes by 0.2-0.5 px per px: the right window shrinks to 0.8-0.5
+    without = match_points(left, right, xy, (5, 140), MatchingConfig(grow_passes=0))
+    m = match_points(left, right, xy, (5, 140))
+    assert m["valid"][steep].mean() > without["valid"][steep].mean() + 0.15
+    grown = m["valid"] & ~without["valid"]
+    err = np.abs(m["xy"][grown, 0] - (xy[grown, 0] - disparity(xy[grown, 0])))
+    assert grown.sum() > 50 and np.median(err) < 0.05 and np.percentile(err, 95) < 0.2 and err.max() < 1.0
+    assert np.all(np.abs(m["xy"][grown, 1] - xy[grown, 1]) < 0.2)
