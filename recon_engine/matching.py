@@ -247,7 +247,7 @@ def _plane_fit(anchors, d_anchor, nb, xy):
     return sol[:, 0], sol[:, 1:], ok
 
 
-def _verify(left, right, xy, r, scale, shear, cfg, max_sigma_px=None):
+def _verify(left, right, xy, r, scale, shear, cfg, max_sigma_px=None, gradients=None):
     """Checks of NCC matches ``r`` of left points ``xy`` and their least-squares refinement.
 
     Returns ``(reason, xy_right, ncc)``: reason "" for an accepted match,
@@ -275,7 +275,7 @@ def _verify(left, right, xy, r, scale, shear, cfg, max_sigma_px=None):
     if cfg.refine and valid.any():
         idx = np.nonzero(valid)[0]
         lsm = least_squares_refine(left, right, xy[idx], r["xy"][idx], window=cfg.window,
-                                   initial_scale=scale[idx], initial_shear=shear[idx])
+                                   initial_scale=scale[idx], initial_shear=shear[idx], gradients=gradients)
         limit = cfg.max_lsm_sigma_px if max_sigma_px is None else max_sigma_px
         good = lsm["converged"] & (lsm["rho"] >= cfg.min_lsm_rho) & (lsm["sigma"] <= limit)
         reason[idx[~good]] = "least-squares matching failed"
@@ -351,12 +351,14 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
             break
     r2 = best
     far = np.asarray(dist).reshape(n, -1)[:, -1]
-    reason, out_xy, out_ncc = _verify(left, right, xy, r2, r2["scale"], 0.0, cfg)
+    grads = image_gradients(right) if cfg.refine else None
+    reason, out_xy, out_ncc = _verify(left, right, xy, r2, r2["scale"], 0.0, cfg, gradients=grads)
     reason[(reason == "") & (far > 6 * cfg.anchor_spacing)] = "no reliable disparity in the neighbourhood"
     out_xy[reason != ""] = np.nan
     # stage 3: region growing. Where the skin turns away from the cameras the disparity changes faster than
     # the anchors' planes follow, and the two views foreshorten it differently; the points matched so far
     # predict both (disparity, stretch and shear of the right window) right next to each unmatched point
+    fresh = None  # points matched in the last pass: only their neighbourhoods have anything new to offer
     for _ in range(cfg.grow_passes):
         valid = reason == ""
         if valid.sum() < 3 or valid.all():
@@ -364,6 +366,11 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
         seeds = xy[valid]
         d_seed = xy[valid, 0] - out_xy[valid, 0]
         todo = np.nonzero(~valid)[0]
+        if fresh is not None:
+            near_fresh = cKDTree(xy[fresh]).query(xy[todo], k=1, distance_upper_bound=cfg.grow_radius_px)[0]
+            todo = todo[np.isfinite(near_fresh)]
+            if len(todo) == 0:
+                break
         k = min(cfg.neighbours, len(seeds))
         dist_s, nb = cKDTree(seeds).query(xy[todo], k=k, distance_upper_bound=cfg.grow_radius_px)
         nb = nb.reshape(len(todo), -1)
@@ -382,20 +389,27 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
             break
         r3 = _search(left, right, xy[todo], xy[todo, 0] - d_pred, cfg.grow_search_px, cfg.band, cfg.window, cfg,
                      scale=scale, shear=shear)
-        why, xy3, ncc3 = _verify(left, right, xy[todo], r3, scale, shear, cfg, cfg.grow_max_lsm_sigma_px)
+        why, xy3, ncc3 = _verify(left, right, xy[todo], r3, scale, shear, cfg, cfg.grow_max_lsm_sigma_px, grads)
         won = why == ""
         reason[todo] = np.where(won, "", why)  # the last attempt's verdict
         if not won.any():
             break
+        fresh = todo[won]
         out_xy[todo[won]] = xy3[won]
         out_ncc[todo[won]] = ncc3[won]
     valid = reason == ""
     return {"xy": out_xy, "ncc": out_ncc, "valid": valid, "reason": reason}
 
 
+def image_gradients(image: np.ndarray) -> tuple:
+    """Central-difference gradients (x, y) of an image (float32), as least-squares matching uses them."""
+    img = np.asarray(image, dtype=np.float32)
+    return np.gradient(img, axis=1), np.gradient(img, axis=0)
+
+
 def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, xy_right: np.ndarray,
                          window: int = 11, iterations: int = 8, shift_y: bool = True, initial_scale=1.0,
-                         initial_shear=0.0) -> dict:
+                         initial_shear=0.0, gradients: tuple | None = None) -> dict:
     """Adaptive least-squares matching (Gruen 1985) of windows already matched to about a pixel.
 
     The right window is an affine image of the left one along the row
@@ -414,8 +428,8 @@ def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarra
     dx = np.broadcast_to(off[None, None, :], (n, window, window))
     dy = np.broadcast_to(off[None, :, None], (n, window, window))
     L = sample(left, xy_left[:, 0, None, None] + dx, xy_left[:, 1, None, None] + dy).reshape(n, -1).astype(float)
-    gx_img = np.gradient(right.astype(np.float32), axis=1)
-    gy_img = np.gradient(right.astype(np.float32), axis=0)
+    # the right image's gradients (x, y): pass them in when refining several batches on one image
+    gx_img, gy_img = gradients if gradients is not None else image_gradients(right)
     # parameters: a0 a1 a2 b0 b1 b2 gain offset
     p = np.zeros((n, 8))
     p[:, 1] = np.asarray(initial_scale, dtype=float) - 1.0

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .camera import Camera, pixel_to_ray
+from .camera import Camera, _distort_jacobian, distort, pixel_to_ray
 
 
 @dataclass(frozen=True)
@@ -44,15 +44,22 @@ def linear_intersection(centres: np.ndarray, directions: np.ndarray, valid: np.n
     return np.linalg.solve(A, b[..., None])[..., 0]
 
 
-def _project_with_jacobian(cam: Camera, X: np.ndarray, h: float = 1e-3):
-    """Pixels (N, 2) of world points and d(pixel)/dX (N, 2, 3) by central differences (h mm)."""
-    uv = cam.project(X)
-    J = np.empty((len(X), 2, 3))
-    for a in range(3):
-        e = np.zeros(3)
-        e[a] = h
-        J[:, :, a] = (cam.project(X + e) - cam.project(X - e)) / (2 * h)
-    return uv, J
+def _project_with_jacobian(cam: Camera, X: np.ndarray):
+    """Pixels (N, 2) of world points (mm) and d(pixel)/dX (N, 2, 3), analytic (collinearity with distortion)."""
+    xc = (np.asarray(X, dtype=float) - cam.C) @ cam.R.T
+    z = xc[:, 2]
+    x, y = xc[:, 0] / z, xc[:, 1] / z
+    xyd = distort(np.column_stack([x, y]), cam.dist)
+    uv = np.column_stack([cam.fx * xyd[:, 0] + cam.cx, cam.fy * xyd[:, 1] + cam.cy])
+    a, b, c, d = _distort_jacobian(x, y, np.asarray(cam.dist, dtype=float))
+    # d(x, y)/d(camera-frame point), then through the rotation to the world frame
+    P = np.zeros((len(z), 2, 3))
+    P[:, 0, 0] = 1 / z
+    P[:, 0, 2] = -x / z
+    P[:, 1, 1] = 1 / z
+    P[:, 1, 2] = -y / z
+    D = np.stack([np.stack([cam.fx * a, cam.fx * b], axis=-1), np.stack([cam.fy * c, cam.fy * d], axis=-1)], axis=1)
+    return uv, D @ P @ cam.R
 
 
 def intersect(cameras: list[Camera], observations: np.ndarray, cfg: IntersectionConfig | None = None) -> dict:
@@ -84,10 +91,15 @@ def intersect(cameras: list[Camera], observations: np.ndarray, cfg: Intersection
             dirs[sel, k] = pixel_to_ray(cam, obs[sel, k])
     X = linear_intersection(centres, dirs, used)
     res = np.zeros((T, K, 2))
+    N = np.zeros((T, 3, 3))
     reason = np.full(T, "", dtype=object)
     reason[used.sum(axis=1) < cfg.min_rays] = "fewer than two rays"
+    # only tracks with enough rays are adjusted, and after the first round only those that lost a ray
+    redo = np.nonzero(reason == "")[0]
     for _ in range(K):  # at most one ray removed per point per round
-        X, N, res = _adjust(cameras, obs, used, X, cfg.iterations)
+        if len(redo) == 0:
+            break
+        X[redo], N[redo], res[redo] = _adjust(cameras, obs[redo], used[redo], X[redo], cfg.iterations)
         z = np.sum(res ** 2, axis=2) / cfg.sigma_px ** 2
         z = np.where(used, z, -1)
         worst = np.argmax(z, axis=1)
@@ -99,7 +111,8 @@ def intersect(cameras: list[Camera], observations: np.ndarray, cfg: Intersection
         reason[bad & ~removable] = "inconsistent rays"
         if not removable.any():
             break
-        used[np.nonzero(removable)[0], worst[removable]] = False
+        redo = np.nonzero(removable)[0]
+        used[redo, worst[removable]] = False
     n_rays = used.sum(axis=1)
     dof = 2 * n_rays - 3
     s0 = np.sqrt(np.sum(np.where(used[..., None], res, 0) ** 2, axis=(1, 2)) / np.maximum(dof, 1)) / cfg.sigma_px

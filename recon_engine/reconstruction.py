@@ -21,7 +21,8 @@ from .epipolar import rig_centre, subject_depth_bounds
 from .features import local_contrast
 from .formats import Calibration, Capture, FormatError, Rig, load_image
 from .multiview import IntersectionConfig, intersect
-from .registration import ICPatchConfig, Transform, chain_initial, multi_surface_registration, pair_fit, weak_arms
+from .registration import (ICPatchConfig, Transform, chain_initial, multi_surface_registration, pair_fit,
+                           patch_indices, weak_arms)
 from .surface import PointSurface, make_surface, off_surface, small_components, subset
 from .tracking import TrackingConfig, track_images
 
@@ -253,7 +254,8 @@ def register_arms(surfaces: dict, arm_reports: dict, failed: dict, rig: Rig, cal
 
     def register(icfg):
         progress("pair-wise ICPatch around the rig")
-        T, pairwise = chain_initial(surfaces, order, reference, icfg, progress=progress)
+        indices = patch_indices({a: surfaces[a] for a in order}, icfg)  # built once for both steps
+        T, pairwise = chain_initial(surfaces, order, reference, icfg, progress=progress, indices=indices)
         unplaced = [a for a in order if a not in T]
         if unplaced:
             raise ValueError(f"arms {', '.join(unplaced)} overlap no placed neighbour under their "
@@ -265,7 +267,7 @@ def register_arms(surfaces: dict, arm_reports: dict, failed: dict, rig: Rig, cal
             closing = {"a": last, "b": reference,
                        **pair_fit(surfaces[last], surfaces[reference], T[last], T[reference], 2.0, icfg)}
         progress("multiple surface registration")
-        multi = multi_surface_registration(surfaces, order, reference, T, icfg, progress=progress)
+        multi = multi_surface_registration(surfaces, order, reference, T, icfg, progress=progress, indices=indices)
         return multi, pairwise, closing
 
     if len(order) > 1:

@@ -42,7 +42,7 @@ class ICPatchConfig:
     estimate_scale: bool = True
     # patches with an edge longer than this many median edges are not used (None: all): long patches are chords
     # below the curved skin where an arm sees it obliquely, and their sagitta biases the solution. Paper scale,
-    # visit0-a, our calibration, displacement errors of B, C, D: all patches 0.0028-0.0054 deg, 0.032-0.055 mm;
+    # visit0-a, our calibration, flat patches, displacement errors of B, C, D: all patches 0.0028-0.0054 deg, 0.032-0.055 mm;
     # 2.0: 0.0016-0.0021 deg, 0.026-0.038 mm; 1.75: 0.0016-0.0029 deg, 0.022-0.034 mm; 1.5: 0.0021-0.0032 deg,
     # 0.015-0.032 mm. Weak overlaps keep all patches (min_compact_pairs), and the torso status checks that
     # every arm is held (max_position_sigma_factor), so at the tiny preset no arm slides any more.
@@ -53,8 +53,19 @@ class ICPatchConfig:
     # arms C and D slide 7 mm): holding the arm matters more than the long patches' bias, so it uses all
     min_compact_share: float = 0.5
     min_compact_pairs: int = 100
-    symmetric: bool = False  # observe each pair in both directions too (no gain measured at paper scale)
-    weight_by_precision: bool = False  # weight each normal distance by its point's and patch's precision
+    # patches curved by their vertices' normals (the TIN's): a flat patch is a chord below the convex skin by its
+    # sagitta, all one way (paper scale, visit0-a, points moved onto the true skin: +3 to +6 um at the true
+    # placement, and B, C, D misplaced by 0.005-0.010 mm; curved: under 1 um, 0.001-0.002 mm). The residual is
+    # the distance to the curved patch along the normal interpolated from the vertices.
+    curved_patches: bool = True
+    # observe each pair in both directions: the two directions' remaining errors pull the arms oppositely.
+    # Measured with curved patches and all points (visit0-a, our calibration, B/C/D position error): one
+    # direction 0.013/0.021/0.019 mm, both 0.012/0.018/0.015 mm
+    symmetric: bool = True
+    # points of each pair's moving surface the multiple registration observes (None: all). A subsample of
+    # 20 000 of an arm's ~65 000 points left B/C/D 1.5-2.5x further off on points with 0.03 mm noise; 40 000
+    # were as good as all on visit0-a (0.012/0.016/0.012 mm against 0.012/0.018/0.015) in half the time
+    max_points_per_pair: int | None = 40000
     freeze_after: int = 12  # iterations with fresh point-patch pairs; then they are kept until convergence
     negligible_sigma: float = 0.01  # corrections below this many of their standard deviations have vanished
     overlap_distance_mm: float = 3.0  # a point over a patch interior this close is in the overlap
@@ -102,7 +113,8 @@ class Transform:
 class PatchIndex:
     """Closest-patch queries on a fixed surface (Open3D raycasting scene)."""
 
-    def __init__(self, surface: PointSurface, max_edge_factor: float | None = None):
+    def __init__(self, surface: PointSurface, max_edge_factor: float | None = None,
+                 vertex_normals: np.ndarray | None = None):
         if len(surface.faces) == 0:
             raise ValueError("the surface has no patches to register against")
         if max_edge_factor is not None:
@@ -129,22 +141,48 @@ class PatchIndex:
         n[np.sum(n * vn, axis=1) < 0] *= -1
         self.normals = n
         self.anchor = P[F[:, 0]]
+        # unit skin normals at the vertices: with them a patch stands for the curved skin, not its chord
+        self.vertex_normals = None if vertex_normals is None else np.asarray(vertex_normals, dtype=float)
 
     def closest(self, x: np.ndarray, margin: float):
-        """Patch id (N,), whether ``x`` projects into its interior (N,), patch normal (N, 3), a vertex (N, 3)."""
+        """Patch id (N,), whether ``x`` projects into its interior (N,), patch normal (N, 3), the point of
+        the patch under ``x`` (N, 3) and the distance of ``x`` to the surface (N,, mm)."""
+        if len(x) == 0:
+            z = np.zeros((0, 3))
+            return np.zeros(0, np.int64), np.zeros(0, bool), z, z, np.zeros(0)
         ans = self.scene.compute_closest_points(o3d.core.Tensor(np.asarray(x, np.float32)))
+        gap = np.linalg.norm(np.asarray(x, dtype=float) - ans["points"].numpy(), axis=1)
         pid = ans["primitive_ids"].numpy().astype(np.int64)
         uv = ans["primitive_uvs"].numpy()
         w = np.column_stack([1 - uv[:, 0] - uv[:, 1], uv])
         inside = (w > margin).all(axis=1) & (pid >= 0)
         pid = np.clip(pid, 0, len(self.normals) - 1)
-        return pid, inside, self.normals[pid], self.anchor[pid]
+        n, p0 = self.normals[pid], self.anchor[pid]
+        if self.vertex_normals is not None:
+            # the point of the curved patch under x: a flat patch is a chord below convex skin by its
+            # sagitta (a few micrometres on 3 mm patches, all one way), which would bias the registration.
+            # Phong's projection onto the vertices' tangent planes, halfway, is exact on a quadric
+            # (Boubekeur and Alexa 2008 with shape factor 1/2)
+            x = np.asarray(x, dtype=float)
+            q = x - np.sum((x - p0) * n, axis=1)[:, None] * n
+            F = self.surface.faces[pid]
+            P, NV = self.surface.points[F], self.vertex_normals[F]  # (N, 3, 3)
+            lift = np.sum((q[:, None, :] - P) * NV, axis=2)  # q's height over each vertex's tangent plane
+            p0 = q - 0.5 * np.sum((w * lift)[:, :, None] * NV, axis=1)
+            # and the curved patch's normal there (the vertex normals average several patches: less noisy)
+            n = np.sum(w[:, :, None] * NV, axis=1)
+            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        return pid, inside, n, p0, gap
 
 
 def patch_indices(surfaces: dict, cfg: ICPatchConfig) -> dict:
     """Per arm ``(all patches, compact patches or None)``: the two patch sets a pair can register against."""
-    return {a: (PatchIndex(s), PatchIndex(s, cfg.max_patch_edge) if cfg.max_patch_edge is not None else None)
-            for a, s in surfaces.items()}
+    out = {}
+    for a, s in surfaces.items():
+        vn = s.normals if cfg.curved_patches else None
+        out[a] = (PatchIndex(s, None, vn),
+                  PatchIndex(s, cfg.max_patch_edge, vn) if cfg.max_patch_edge is not None else None)
+    return out
 
 
 def choose_patches(points, normals, indices: tuple, transform: Transform, max_distance: float,
@@ -160,26 +198,52 @@ def choose_patches(points, normals, indices: tuple, transform: Transform, max_di
     full, compact = indices
     if compact is None:
         return full, "all"
-    n_full = len(correspondences(points, normals, full, transform, max_distance, cfg)[0])
-    n_compact = len(correspondences(points, normals, compact, transform, max_distance, cfg)[0])
+    n_full = _count_pairs(points, normals, full, transform, max_distance, cfg)
+    n_compact = _count_pairs(points, normals, compact, transform, max_distance, cfg)
     if n_compact >= max(cfg.min_pairs, cfg.min_compact_pairs, cfg.min_compact_share * n_full):
         return compact, "compact"
     return full, "all"
 
 
+def _count_pairs(points, normals, index, transform, max_distance, cfg, sample: int = 8000) -> int:
+    """About how many point–patch pairs ``points`` make: counted on every k-th point (a decision, not an
+    observation), scaled back."""
+    k = max(1, len(points) // sample)
+    nrm = None if normals is None else normals[::k]
+    return k * len(correspondences(points[::k], nrm, index, transform, max_distance, cfg)[0])
+
+
 def correspondences(points, normals, index: PatchIndex, transform: Transform, max_distance: float,
-                    cfg: ICPatchConfig):
-    """Accepted point–patch pairs under ``transform``: (point ids, patch normal, patch vertex, normal distance,
-    patch ids)."""
+                    cfg: ICPatchConfig, near: dict | None = None):
+    """Accepted point–patch pairs under ``transform``: (point ids, patch normal, point of the patch under the
+    point, normal distance, patch ids).
+
+    ``near`` is an optional dict kept by the caller between calls on the same
+    points and patches: points that were far from the surface at a full
+    query, and cannot have come within ``max_distance`` since (the
+    transformation's largest motion of any point bounds that), are not
+    queried again. Most of an arm lies outside its overlap with another.
+    """
     x = transform.apply(points)
-    pid, inside, n, p0 = index.closest(x, cfg.edge_margin)
-    d = np.sum((x - p0) * n, axis=1)
+    sel = np.arange(len(x))
+    if near is not None:
+        corners = np.array(np.meshgrid(*zip(points.min(axis=0), points.max(axis=0)))).T.reshape(-1, 3)
+        moved = (float(np.max(np.linalg.norm(transform.apply(corners) - near["at"].apply(corners), axis=1)))
+                 if "gap" in near else np.inf)
+        if moved > near.setdefault("slack_mm", 5.0):
+            near["gap"], near["at"], moved = None, transform, 0.0  # (re)start: query every point
+        else:
+            sel = np.nonzero(near["gap"] - moved <= max_distance)[0]
+    pid, inside, n, p0, gap = index.closest(x[sel], cfg.edge_margin)
+    if near is not None and near["gap"] is None:
+        near["gap"] = gap
+    d = np.sum((x[sel] - p0) * n, axis=1)
     ok = inside & (np.abs(d) <= max_distance)
     if normals is not None:
-        cosang = np.sum(transform.rotate(normals) * n, axis=1)
+        cosang = np.sum(transform.rotate(normals[sel]) * n, axis=1)
         ok &= cosang >= np.cos(np.radians(cfg.max_normal_angle_deg))
-    idx = np.nonzero(ok)[0]
-    return idx, n[idx], p0[idx], d[idx], pid[idx]
+    k = np.nonzero(ok)[0]
+    return sel[k], n[k], p0[k], d[k], pid[k]
 
 
 def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None = None,
@@ -200,9 +264,10 @@ def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None
     dist = cfg.initial_distance_mm
     converged = False
     it = 0
+    near = {}
     for it in range(1, cfg.max_iterations + 1):
         if it <= cfg.freeze_after:
-            pairs_now = correspondences(X, moving.normals, index, T, dist, cfg)
+            pairs_now = correspondences(X, moving.normals, index, T, dist, cfg, near)
         idx, n, p0 = pairs_now[:3]
         d = np.sum((T.apply(X[idx]) - p0) * n, axis=1)
         if len(idx) < 7:
@@ -228,7 +293,7 @@ def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None
                           and abs(ds) < cfg.tol_scale):
             converged = True
             break
-    idx, n, p0, d, _ = correspondences(X, moving.normals, index, T, dist, cfg)
+    idx, n, p0, d, _ = correspondences(X, moving.normals, index, T, dist, cfg, near)
     Y = T.apply(X[idx]) - T.apply(centre)
     J = np.column_stack([np.sum(n * Y, axis=1), np.cross(Y, n), n])
     dof = max(len(idx) - (7 if cfg.estimate_scale else 6), 1)
@@ -262,8 +327,8 @@ def smooth_normals(surface: PointSurface, at: np.ndarray, tree=None, k: int = 30
     return n
 
 
-def _subsample(n: int, max_points: int, seed: int = 0) -> np.ndarray:
-    if n <= max_points:
+def _subsample(n: int, max_points: int | None, seed: int = 0) -> np.ndarray:
+    if max_points is None or n <= max_points:
         return np.arange(n)
     return np.sort(np.random.default_rng(seed).choice(n, max_points, replace=False))
 
@@ -278,7 +343,7 @@ def neighbour_pairs(order: list) -> list:
 
 
 def chain_initial(surfaces: dict, order: list, reference: str, cfg: ICPatchConfig | None = None,
-                  initial: dict | None = None, progress=lambda msg: None) -> tuple[dict, list]:
+                  initial: dict | None = None, progress=lambda msg: None, indices: dict | None = None) -> tuple[dict, list]:
     """Initial transforms from pair-wise ICPatch, outward from the reference arm.
 
     Arms are placed one by one along the neighbouring pairs that overlap most
@@ -289,13 +354,13 @@ def chain_initial(surfaces: dict, order: list, reference: str, cfg: ICPatchConfi
     """
     cfg = cfg or ICPatchConfig()
     start = {a: (initial or {}).get(a, Transform.identity()) for a in order}
-    indices = patch_indices({a: surfaces[a] for a in order}, cfg)
+    indices = indices or patch_indices({a: surfaces[a] for a in order}, cfg)  # (see patch_indices)
     overlap = {}
     for a, b in neighbour_pairs(order):
         for m, f in ((a, b), (b, a)):
             rel = start[f].inverse().compose(start[m])
-            overlap[(m, f)] = len(correspondences(surfaces[m].points, surfaces[m].normals, indices[f][0], rel,
-                                                  cfg.initial_distance_mm, cfg)[0])
+            overlap[(m, f)] = _count_pairs(surfaces[m].points, surfaces[m].normals, indices[f][0], rel,
+                                           cfg.initial_distance_mm, cfg)
     T = {reference: Transform.identity()}
     results = []
     while True:
@@ -332,28 +397,9 @@ def _pair_blocks(a, b, x, foot, n, col, centres) -> list:
     return blocks
 
 
-def _pair_weights(moving: PointSurface, fixed: PointSurface, index: PatchIndex, point_ids, patch_ids,
-                  cfg: ICPatchConfig) -> np.ndarray:
-    """Relative weights of point–patch normal distances (mean 1): the inverse of their variance.
-
-    The variance is the point's and its patch's (the plane through three
-    measured points, about a third of their mean variance at the patch's
-    centre), from each point's precision ``sigma_mm``; all ones when the
-    surfaces carry no precision or ``cfg.weight_by_precision`` is off.
-    """
-    n = len(point_ids)
-    if not cfg.weight_by_precision or "sigma_mm" not in (moving.data or {}) or "sigma_mm" not in (fixed.data or {}):
-        return np.ones(n)
-    sa = np.asarray(moving.data["sigma_mm"], float)[point_ids]
-    sb = np.asarray(fixed.data["sigma_mm"], float)[index.surface.faces[patch_ids]]
-    var = sa ** 2 + np.mean(sb ** 2, axis=1) / 3.0
-    w = 1.0 / np.maximum(var, 1e-8)
-    return w / w.mean() if n else w
-
-
 def multi_surface_registration(surfaces: dict, order: list, reference: str, initial: dict,
-                               cfg: ICPatchConfig | None = None, max_points_per_pair: int = 20000,
-                               progress=lambda msg: None) -> dict:
+                               cfg: ICPatchConfig | None = None, progress=lambda msg: None,
+                               indices: dict | None = None) -> dict:
     """All surfaces in one least-squares adjustment, ``reference`` held fixed.
 
     Observations: the normal distances of every neighbouring pair's
@@ -371,11 +417,11 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
     n_par = 7 * len(free)
     pairs = neighbour_pairs(arms)
     if cfg.symmetric:
-        # both directions of every pair: a surface's points lie off the other's chords (the patches) by
-        # the curvature's sagitta, the same way in both directions, so the two bias the solution oppositely
+        # both directions of every pair: what is left of a bias (each surface's points against the other's
+        # patches) pulls the two oppositely; the report's table keeps one row per neighbouring pair
         pairs = pairs + [(b, a) for a, b in pairs]
-    indices = patch_indices({a: surfaces[a] for a in arms}, cfg)
-    sample = {(a, b): _subsample(len(surfaces[a].points), max_points_per_pair, seed=k)
+    indices = indices or patch_indices({a: surfaces[a] for a in arms}, cfg)
+    sample = {(a, b): _subsample(len(surfaces[a].points), cfg.max_points_per_pair, seed=k)
               for k, (a, b) in enumerate(pairs)}
     T = {a: initial.get(a, Transform.identity()) for a in arms}
     T[reference] = Transform.identity()
@@ -390,7 +436,8 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             T[b].inverse().compose(T[a]), dist[(a, b)], cfg)
     converged = False
     it = 0
-    frozen, weights = {}, {}
+    frozen = {}
+    near = {p: {} for p in pairs}
     weak = set()
     scale_weight = 0.0 if cfg.estimate_scale else 1e12
     for it in range(1, cfg.max_iterations + 1):
@@ -404,13 +451,10 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             rel = T[b].inverse().compose(T[a])
             if it <= cfg.freeze_after:
                 frozen[(a, b)] = correspondences(X, surfaces[a].normals[idx_all], index[(a, b)], rel, dist[(a, b)],
-                                                 cfg)
+                                                 cfg, near[(a, b)])
             # after a few iterations the pairs are kept, so the adjustment converges instead of
             # jittering as points at the acceptance limit come and go
             idx, n_loc, p0_loc = frozen[(a, b)][:3]
-            if it <= cfg.freeze_after:
-                weights[(a, b)] = _pair_weights(surfaces[a], surfaces[b], index[(a, b)], idx_all[idx],
-                                                frozen[(a, b)][4], cfg)
             if len(idx) < cfg.min_pairs:
                 # a pair that barely overlaps says nothing reliable: it is left out (and reported)
                 weak.add((a, b))
@@ -423,12 +467,11 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             d = d_loc * T[b].scale
             foot = x - d[:, None] * n
             stats[(a, b)] = (d, len(idx), len(idx_all))
-            w = weights[(a, b)]
             blocks = _pair_blocks(a, b, x, foot, n, col, centres)
             for ca, Ja in blocks:
-                rhs[ca:ca + 7] -= Ja.T @ (w * d)
+                rhs[ca:ca + 7] -= Ja.T @ d
                 for cb, Jb in blocks:
-                    N[ca:ca + 7, cb:cb + 7] += Ja.T @ (w[:, None] * Jb)
+                    N[ca:ca + 7, cb:cb + 7] += Ja.T @ Jb
         for a in free:
             N[col[a], col[a]] += scale_weight
         # every arm must hang on the reference through pairs that overlap
@@ -479,7 +522,9 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
     for (a, b) in pairs:
         if (a, b) in weak:
             continue
-        idx, n_loc, p0_loc = frozen[(a, b)][:3]
+        # every k-th pair is enough for a covariance (scaled back by k); smoothing normals is costly
+        k = max(1, len(frozen[(a, b)][0]) // 5000)
+        idx, n_loc, p0_loc = (v[::k] for v in frozen[(a, b)][:3])
         X = surfaces[a].points[sample[(a, b)][idx]]
         rel = T[b].inverse().compose(T[a])
         xb = rel.apply(X)
@@ -487,10 +532,9 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         n = T[b].rotate(smooth_normals(surfaces[b], foot_b, trees[b]))
         x, foot = T[a].apply(X), T[b].apply(foot_b)
         blocks = _pair_blocks(a, b, x, foot, n, col, centres)
-        w = weights[(a, b)]
         for ca, Ja in blocks:
             for cb, Jb in blocks:
-                Ng[ca:ca + 7, cb:cb + 7] += Ja.T @ (w[:, None] * Jb)
+                Ng[ca:ca + 7, cb:cb + 7] += k * (Ja.T @ Jb)
     for a in free:
         Ng[col[a], col[a]] += scale_weight
     cov_g = s0 ** 2 * np.linalg.pinv(Ng)
@@ -498,7 +542,10 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
                                 centres[a]) for a in free}
     pair_rows = []
     loose = ICPatchConfig(max_normal_angle_deg=90.0, edge_margin=cfg.edge_margin)
+    forward = set(neighbour_pairs(arms))
     for (a, b), (d, k, n_all) in stats.items():
+        if (a, b) not in forward:
+            continue
         # the overlap: points over the interior of a patch of b within a generous distance
         idx_all = sample[(a, b)]
         rel = T[b].inverse().compose(T[a])
