@@ -174,17 +174,18 @@ def main() -> int:
     out["status"], out["problems"], out["warnings"] = rep["status"], rep["problems"], rep["warnings"]
     out["strength"] = reg.get("strength", {})
     out["patches"] = {f"{p['a']}-{p['b']}": p.get("patches") for p in reg["pairs"]}
-    # our registration again on the same surfaces with the compact-patch filter set otherwise
-    for edge in args.patch_edge:
-        edge = None if edge.lower() == "none" else float(edge)
-        if edge == ICPatchConfig().max_patch_edge:
-            continue
+    # our registration again on the same surfaces with the compact-patch filter set otherwise, and with the
+    # flat patches, one direction and 20 000 points per pair of the earlier default
+    variants = [(f"ours_max_patch_edge_{e}", ICPatchConfig(max_patch_edge=e))
+                for e in (None if x.lower() == "none" else float(x) for x in args.patch_edge)
+                if e != ICPatchConfig().max_patch_edge]
+    variants.append(("ours_flat_patches_one_way_20000",
+                     ICPatchConfig(curved_patches=False, symmetric=False, max_points_per_pair=20000)))
+    for name, icfg in variants:
         t1 = time.perf_counter()
-        alt = register_arms(surfaces, rep["arms"], rep["failed_arms"], rig, cal,
-                            TorsoConfig(icpatch=ICPatchConfig(max_patch_edge=edge)))
+        alt = register_arms(surfaces, rep["arms"], rep["failed_arms"], rig, cal, TorsoConfig(icpatch=icfg))
         dt = time.perf_counter() - t1
         areg = alt["report"]["registration"]
-        name = f"ours_max_patch_edge_{edge}"
         out["displacement_error"][name] = displacement_errors(alt["transforms"], D, truth.centroid)
         out["peers"][name] = {
             "seconds": alt["report"]["seconds"]["registration"], "with_fusion_and_mesh": dt,
