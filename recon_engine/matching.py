@@ -222,25 +222,20 @@ def _search(left, right, xy, x_pred, radius, band, window, cfg, scale=1.0, shear
 
 def _plane_prediction(anchors, d_anchor, nb, xy):
     """Disparity at ``xy`` from a plane through each point's neighbouring anchors (median where degenerate)."""
-    A = np.concatenate([np.ones(nb.shape + (1,)), anchors[nb] - xy[:, None, :]], axis=2)  # (n, k, 3)
-    N = np.einsum("nki,nkj->nij", A, A)
-    b = np.einsum("nki,nk->ni", A, d_anchor[nb])
     med = np.median(d_anchor[nb], axis=1)
-    ok = np.linalg.cond(N) < 1e8
-    pred = med.copy()
-    if ok.any():
-        pred[ok] = np.linalg.solve(N[ok], b[ok][..., None])[:, 0, 0]
+    plane, _, ok = _plane_fit(anchors, d_anchor, nb, xy, max_cond=1e8)
+    pred = np.where(ok, plane, med)
     # a plane that strays far from its anchors (a wrong anchor) falls back to the median
     spread = np.ptp(d_anchor[nb], axis=1)
     return np.where(np.abs(pred - med) <= spread + 1.0, pred, med)
 
 
-def _plane_fit(anchors, d_anchor, nb, xy):
+def _plane_fit(anchors, d_anchor, nb, xy, max_cond: float = 1e6):
     """Disparity plane through each point's neighbours ``nb``: (value at ``xy``, (N, 2) gradient, fit ok)."""
     A = np.concatenate([np.ones(nb.shape + (1,)), anchors[nb] - xy[:, None, :]], axis=2)  # (n, k, 3)
     N = np.einsum("nki,nkj->nij", A, A)
     b = np.einsum("nki,nk->ni", A, d_anchor[nb])
-    ok = np.linalg.cond(N) < 1e6
+    ok = np.linalg.cond(N) < max_cond
     sol = np.zeros((len(xy), 3))
     if ok.any():
         sol[ok] = np.linalg.solve(N[ok], b[ok][..., None])[..., 0]
