@@ -216,7 +216,7 @@ def _count_pairs(points, normals, index, transform, max_distance, cfg, sample: i
 def correspondences(points, normals, index: PatchIndex, transform: Transform, max_distance: float,
                     cfg: ICPatchConfig, near: dict | None = None):
     """Accepted point–patch pairs under ``transform``: (point ids, patch normal, point of the patch under the
-    point, normal distance, patch ids).
+    point, normal distance).
 
     ``near`` is an optional dict kept by the caller between calls on the same
     points and patches: points that were far from the surface at a full
@@ -243,7 +243,7 @@ def correspondences(points, normals, index: PatchIndex, transform: Transform, ma
         cosang = np.sum(transform.rotate(normals[sel]) * n, axis=1)
         ok &= cosang >= np.cos(np.radians(cfg.max_normal_angle_deg))
     k = np.nonzero(ok)[0]
-    return sel[k], n[k], p0[k], d[k], pid[k]
+    return sel[k], n[k], p0[k], d[k]
 
 
 def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None = None,
@@ -268,7 +268,7 @@ def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None
     for it in range(1, cfg.max_iterations + 1):
         if it <= cfg.freeze_after:
             pairs_now = correspondences(X, moving.normals, index, T, dist, cfg, near)
-        idx, n, p0 = pairs_now[:3]
+        idx, n, p0, _ = pairs_now
         d = np.sum((T.apply(X[idx]) - p0) * n, axis=1)
         if len(idx) < 7:
             raise ValueError(f"ICPatch: only {len(idx)} point-patch pairs within {dist:.1f} mm: "
@@ -293,7 +293,7 @@ def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None
                           and abs(ds) < cfg.tol_scale):
             converged = True
             break
-    idx, n, p0, d, _ = correspondences(X, moving.normals, index, T, dist, cfg, near)
+    idx, n, p0, d = correspondences(X, moving.normals, index, T, dist, cfg, near)
     Y = T.apply(X[idx]) - T.apply(centre)
     J = np.column_stack([np.sum(n * Y, axis=1), np.cross(Y, n), n])
     dof = max(len(idx) - (7 if cfg.estimate_scale else 6), 1)
@@ -454,7 +454,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
                                                  cfg, near[(a, b)])
             # after a few iterations the pairs are kept, so the adjustment converges instead of
             # jittering as points at the acceptance limit come and go
-            idx, n_loc, p0_loc = frozen[(a, b)][:3]
+            idx, n_loc, p0_loc, _ = frozen[(a, b)]
             if len(idx) < cfg.min_pairs:
                 # a pair that barely overlaps says nothing reliable: it is left out (and reported)
                 weak.add((a, b))
@@ -613,7 +613,7 @@ def pair_fit(moving: PointSurface, fixed: PointSurface, T_moving: Transform, T_f
     cfg = cfg or ICPatchConfig()
     rel = T_fixed.inverse().compose(T_moving)
     # all patches: the same measure whichever patches a registration used
-    idx, _, _, d, _ = correspondences(moving.points, moving.normals, PatchIndex(fixed), rel,
+    idx, _, _, d = correspondences(moving.points, moving.normals, PatchIndex(fixed), rel,
                                    max_distance_mm, cfg)
     d = d * T_fixed.scale
     return {"average_normal_distance_mm": float(np.mean(np.abs(d))) if len(d) else None,
