@@ -3,6 +3,10 @@
     .venv/bin/python benchmarks/bench_reconstruct.py --scenario bench-out/paper --capture visit0-a \
         --calibration bench-out/paper-calibration.json
 
+Several captures (``--capture visit0-a visit0-b visit1-a``) give the
+displacement errors of 3 arms each, and their means per method: one capture's
+three arms are too few to rank registrations that differ by micrometres.
+
 ``--calibration`` is our own calibration from the scenario's raw test-field
 images (``bench_calibrate.py`` or ``torsoscan calibrate`` writes it). The
 torso capture's arms B, C, D are displaced from their calibrated placement;
@@ -12,13 +16,15 @@ cameras of one arm see, the paper's Table 1 (average normal distance and
 matched fraction of every neighbouring pair after the multiple
 registration), the misclosure that pair-wise registration alone leaves at the
 closing pair, and the time of each stage. Writes
-``bench-out/bench_reconstruct.json``.
+``bench-out/bench_reconstruct.json`` (and each capture's arm surfaces, pickled,
+with ``--keep-surfaces``).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import pickle
 import subprocess
 import sys
 import time
@@ -108,24 +114,17 @@ def open3d_multiway(surfaces, order):
     return {a: _from_matrix(graph.nodes[k].pose) for k, a in enumerate(order)}
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenario", default="bench-out/paper")
-    ap.add_argument("--capture", default="visit0-a")
-    ap.add_argument("--calibration", default="bench-out/paper-calibration.json")
-    ap.add_argument("--patch-edge", nargs="*", default=["none", "1.75"],
-                    help="also register the same surfaces with these ICPatchConfig.max_patch_edge values "
-                         "(\"none\": all patches); the default's is not repeated")
-    args = ap.parse_args()
+def run_capture(args, capture: str) -> dict:
+    """Reconstruct one capture end to end and register its surfaces with every method: its figures."""
     S = Path(args.scenario)
     rig = read_rig(S / "rig.json")
     cal = read_calibration(args.calibration)
-    cap = read_capture(S / "captures" / args.capture, rig)
+    cap = read_capture(S / "captures" / capture, rig)
     t0 = time.perf_counter()
     res = reconstruct_torso(cap, rig, cal, progress=lambda m: print(f"  {m}", flush=True))
     wall = time.perf_counter() - t0
-    truth = Truth(S, args.capture)
-    true_cal = read_calibration(S / "truth" / args.capture / "calibration.json")
+    truth = Truth(S, capture)
+    true_cal = read_calibration(S / "truth" / capture / "calibration.json")
     P = res["points"]
     d = truth.distance(P)
     # torso area that two cameras of one arm see (matching happens inside an arm)
@@ -138,14 +137,8 @@ def main() -> int:
     coverage = float(truth.area[seen2][covered].sum() / truth.area[seen2].sum())
     rep = res["report"]
     reg = rep["registration"]
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent).stdout.strip()
-    except OSError:
-        commit = "?"
     out = {
-        "machine": machine(), "commit": commit,
-        "command": " ".join(["benchmarks/bench_reconstruct.py", *sys.argv[1:]]),
+        "capture": capture, "reference": rig.reference_arm.id,
         "points": int(len(P)), "rms_mm": float(np.sqrt(np.mean(d ** 2))), "p95_mm": float(np.percentile(d, 95)),
         "max_mm": float(d.max()), "coverage": coverage, "seen_area_cm2": float(truth.area[seen2].sum() / 100),
         "table1": reg["pairs"], "pairwise": reg["pairwise"], "sigmas": reg["sigmas"],
@@ -154,7 +147,7 @@ def main() -> int:
         "arm_seconds": {a: r["seconds"]["total"] for a, r in rep["arms"].items()},
     }
     # each arm's recovered displacement against the truth, ours and Open3D's
-    disp = json.loads((S / "truth" / args.capture / "truth.json").read_text())["arm_displacements"]
+    disp = json.loads((S / "truth" / capture / "truth.json").read_text())["arm_displacements"]
     D = {a: Transform(1.0, np.array(v["R"]), np.array(v["t"])) for a, v in disp.items()}
     out["displacement_error"] = {"ours": displacement_errors(res["transforms"], D, truth.centroid)}
     surfaces = res["surfaces"]
@@ -193,9 +186,51 @@ def main() -> int:
             "patches": {f"{p['a']}-{p['b']}": p.get("patches") for p in areg["pairs"]},
             "pairs": [{"a": a, "b": b, **pair_fit(surfaces[a], surfaces[b], alt["transforms"][a], alt["transforms"][b])}
                       for a, b in zip(order, order[1:] + order[:1])]}
+    if args.keep_surfaces:
+        with open(f"bench-out/surfaces-{capture}.pkl", "wb") as f:
+            pickle.dump({"surfaces": surfaces, "reports": rep["arms"], "failed": rep["failed_arms"]}, f)
+    print(capture, json.dumps({k: v for k, v in out.items() if k not in ("pairwise", "sigmas", "strength")},
+                              indent=1, default=float), flush=True)
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", default="bench-out/paper")
+    ap.add_argument("--capture", nargs="+", default=["visit0-a"])
+    ap.add_argument("--calibration", default="bench-out/paper-calibration.json")
+    ap.add_argument("--patch-edge", nargs="*", default=["none", "1.75"],
+                    help="also register the same surfaces with these ICPatchConfig.max_patch_edge values "
+                         "(\"none\": all patches); the default's is not repeated")
+    ap.add_argument("--keep-surfaces", action="store_true",
+                    help="pickle each capture's arm surfaces and reports to bench-out/surfaces-<capture>.pkl")
+    args = ap.parse_args()
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                cwd=Path(__file__).parent).stdout.strip()
+    except OSError:
+        commit = "?"
+    runs = {c: run_capture(args, c) for c in args.capture}
+    # per method: the mean over every displaced arm of every capture
+    methods = list(next(iter(runs.values()))["displacement_error"])
+    summary = {}
+    for m in methods:
+        rows = [e for r in runs.values() for a, e in r["displacement_error"][m].items()
+                if a != r["reference"]]
+        summary[m] = {"arms": len(rows),
+                      "mean_rms_mm": float(np.mean([e["rms_mm"] for e in rows])),
+                      "max_rms_mm": float(np.max([e["rms_mm"] for e in rows])),
+                      "mean_rotation_deg": float(np.mean([e["rotation_deg"] for e in rows])),
+                      "max_rotation_deg": float(np.max([e["rotation_deg"] for e in rows])),
+                      "seconds_mean": float(np.mean([r["peers"][m]["seconds"] if m in r["peers"] else
+                                                     r["peers"]["ours"]["seconds"] for r in runs.values()]))}
+    out = {"machine": machine(), "commit": commit,
+           "command": " ".join(["benchmarks/bench_reconstruct.py", *sys.argv[1:]]),
+           "captures": runs, "summary": summary}
+    if len(runs) == 1:
+        out.update(next(iter(runs.values())))  # the single-capture layout of earlier runs
     Path("bench-out/bench_reconstruct.json").write_text(json.dumps(out, indent=2))
-    print(json.dumps({k: v for k, v in out.items() if k not in ("pairwise", "sigmas", "strength")}, indent=1,
-                     default=float))
+    print(json.dumps(summary, indent=1))
     return 0
 
 

@@ -27,6 +27,8 @@ All coordinates are rectified pixels (x = column, y = row).
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -64,6 +66,8 @@ class MatchingConfig:
     grow_scale_range: tuple = (0.3, 3.0)  # predicted stretches outside this are not tried
     grow_max_lsm_sigma_px: float = 0.1  # least-squares precision a grown match needs
     chunk: int = 4000  # points per vectorized block (memory)
+    # blocks run in this many threads (numpy and OpenCV release the GIL in the array work); 0: one per core
+    threads: int = 0
 
 
 def sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -202,9 +206,25 @@ def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.n
     return {"xy": out, "ncc": best.astype(float), "second": second.astype(float), "at_edge": at_edge}
 
 
-def _chunked(fn, n, chunk, **arrays):
-    parts = [fn(**{k: v[s:s + chunk] if isinstance(v, np.ndarray) and len(v) == n else v
-                   for k, v in arrays.items()}) for s in range(0, n, chunk)]
+def _threads(cfg) -> int:
+    return cfg.threads if cfg.threads > 0 else (os.cpu_count() or 1)
+
+
+def _chunked(fn, n, chunk, threads=1, **arrays):
+    """``fn`` over blocks of at most ``chunk`` of the length-``n`` arrays, in ``threads`` threads, concatenated."""
+    if threads > 1:
+        chunk = max(1, min(chunk, -(-n // threads)))  # every thread gets a block
+
+    def run(s):
+        return fn(**{k: v[s:s + chunk] if isinstance(v, np.ndarray) and len(v) == n else v
+                     for k, v in arrays.items()})
+
+    starts = range(0, n, chunk)
+    if threads > 1 and len(starts) > 1:
+        with ThreadPoolExecutor(threads) as pool:
+            parts = list(pool.map(run, starts))
+    else:
+        parts = [run(s) for s in starts]
     if not parts:
         return {"xy": np.zeros((0, 2)), "ncc": np.zeros(0), "second": np.zeros(0), "at_edge": np.zeros(0, bool)}
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
@@ -216,8 +236,8 @@ def _search(left, right, xy, x_pred, radius, band, window, cfg, scale=1.0, shear
     shear = np.broadcast_to(np.asarray(shear, dtype=float), (n,)).copy()
     return _chunked(lambda **a: ncc_search(left, right, a["xy"], a["x_pred"], radius, band, window, scale=a["scale"],
                                            shear=a["shear"]),
-                    n, max(1, cfg.chunk * 121 // (window * window * max(1, radius // 8 + 1))), xy=xy, x_pred=x_pred,
-                    scale=scale, shear=shear)
+                    n, max(1, cfg.chunk * 121 // (window * window * max(1, radius // 8 + 1))), _threads(cfg),
+                    xy=xy, x_pred=x_pred, scale=scale, shear=shear)
 
 
 def _plane_prediction(anchors, d_anchor, nb, xy):
@@ -235,7 +255,8 @@ def _plane_fit(anchors, d_anchor, nb, xy, max_cond: float = 1e6):
     A = np.concatenate([np.ones(nb.shape + (1,)), anchors[nb] - xy[:, None, :]], axis=2)  # (n, k, 3)
     N = np.einsum("nki,nkj->nij", A, A)
     b = np.einsum("nki,nk->ni", A, d_anchor[nb])
-    ok = np.linalg.cond(N) < max_cond
+    lam = np.linalg.eigvalsh(N)  # N is symmetric: its condition number from the eigenvalues (cheaper than an SVD)
+    ok = lam[:, 0] * max_cond > lam[:, -1]
     sol = np.zeros((len(xy), 3))
     if ok.any():
         sol[ok] = np.linalg.solve(N[ok], b[ok][..., None])[..., 0]
@@ -269,8 +290,13 @@ def _verify(left, right, xy, r, scale, shear, cfg, max_sigma_px=None, gradients=
     out_ncc = np.asarray(r["ncc"], dtype=float).copy()
     if cfg.refine and valid.any():
         idx = np.nonzero(valid)[0]
-        lsm = least_squares_refine(left, right, xy[idx], r["xy"][idx], window=cfg.window,
-                                   initial_scale=scale[idx], initial_shear=shear[idx], gradients=gradients)
+        if gradients is None:
+            gradients = image_gradients(right)
+        lsm = _chunked(lambda **a: least_squares_refine(left, right, a["xy_left"], a["xy_right"], window=cfg.window,
+                                                        initial_scale=a["scale"], initial_shear=a["shear"],
+                                                        gradients=gradients),
+                       len(idx), cfg.chunk * 2, _threads(cfg), xy_left=xy[idx], xy_right=r["xy"][idx],
+                       scale=np.ascontiguousarray(scale[idx]), shear=np.ascontiguousarray(shear[idx]))
         limit = cfg.max_lsm_sigma_px if max_sigma_px is None else max_sigma_px
         good = lsm["converged"] & (lsm["rho"] >= cfg.min_lsm_rho) & (lsm["sigma"] <= limit)
         reason[idx[~good]] = "least-squares matching failed"
@@ -397,9 +423,48 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
 
 
 def image_gradients(image: np.ndarray) -> tuple:
-    """Central-difference gradients (x, y) of an image (float32), as least-squares matching uses them."""
-    img = np.asarray(image, dtype=np.float32)
-    return np.gradient(img, axis=1), np.gradient(img, axis=0)
+    """What least-squares matching samples of an image, laid out for OpenCV's remap.
+
+    Returns ``(corners, gradients)``: (H, W, 4) float32 of each pixel's
+    2×2 neighbourhood (value at x, x+1, and one row below), so that one
+    nearest-pixel fetch gives all four corners of an exact bilinear sample;
+    and (H, W, 2) float32 central-difference gradients d/dx, d/dy.
+    """
+    img = np.ascontiguousarray(image, dtype=np.float32)
+    nxt = np.zeros_like(img)
+    nxt[:, :-1] = img[:, 1:]
+    below = np.zeros_like(img)
+    below[:-1] = img[1:]
+    diag = np.zeros_like(img)
+    diag[:-1] = nxt[1:]
+    corners = cv2.merge([img, nxt, below, diag])  # interleaving in OpenCV: numpy's stack along the last axis is slow
+    # central differences (as numpy's gradient inside the image); OpenCV's filter is several times faster
+    gradients = cv2.merge([cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REPLICATE),
+                           cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REPLICATE)])
+    return corners, gradients
+
+
+def _sample_with_gradients(prepared: tuple, x: np.ndarray, y: np.ndarray):
+    """Exact bilinear values and interpolated gradients (float32, shape of ``x``) of ``image_gradients`` output.
+
+    The four corners come from one nearest-pixel remap (fast, in OpenCV) and
+    are weighted here with the exact fractions: OpenCV's bilinear remap rounds
+    positions to 1/32 px, too coarse for least-squares matching, which
+    resolves about 1/1000 px. The gradients, only the Jacobian, take it.
+    """
+    corners, gradients = prepared
+    h, w = corners.shape[:2]
+    x = np.asarray(x, dtype=float)
+    y = np.asarray(y, dtype=float)
+    x0, y0 = np.floor(x), np.floor(y)
+    fx, fy = (x - x0).astype(np.float32), (y - y0).astype(np.float32)
+    c = sample_bilinear(corners, x0, y0, interpolation=cv2.INTER_NEAREST)
+    top = c[..., 0] + fx * (c[..., 1] - c[..., 0])
+    bottom = c[..., 2] + fx * (c[..., 3] - c[..., 2])
+    value = top + fy * (bottom - top)
+    value[(x0 < 0) | (y0 < 0) | (x0 >= w - 1) | (y0 >= h - 1)] = 0
+    g = sample_bilinear(gradients, x, y)
+    return value, g[..., 0], g[..., 1]
 
 
 def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, xy_right: np.ndarray,
@@ -423,8 +488,8 @@ def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarra
     dx = np.broadcast_to(off[None, None, :], (n, window, window))
     dy = np.broadcast_to(off[None, :, None], (n, window, window))
     L = sample(left, xy_left[:, 0, None, None] + dx, xy_left[:, 1, None, None] + dy).reshape(n, -1).astype(float)
-    # the right image's gradients (x, y): pass them in when refining several batches on one image
-    gx_img, gy_img = gradients if gradients is not None else image_gradients(right)
+    # the right image laid out for sampling with its gradients: pass it in when refining several batches on one image
+    prepared = gradients if gradients is not None else image_gradients(right)
     # parameters: a0 a1 a2 b0 b1 b2 gain offset
     p = np.zeros((n, 8))
     p[:, 1] = np.asarray(initial_scale, dtype=float) - 1.0
@@ -447,7 +512,7 @@ def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarra
         q, ex, ey = p[running], ddx[running], ddy[running]
         x = base[running, 0, None] + ex + q[:, 0, None] + q[:, 1, None] * ex + q[:, 2, None] * ey
         y = base[running, 1, None] + ey + q[:, 3, None] + q[:, 4, None] * ex + q[:, 5, None] * ey
-        Rv, gx, gy = sample_many((right, gx_img, gy_img), x, y)
+        Rv, gx, gy = _sample_with_gradients(prepared, x, y)
         gx *= q[:, 6, None]
         gy *= q[:, 6, None]
         r = L[running] - (q[:, 6, None] * Rv + q[:, 7, None])

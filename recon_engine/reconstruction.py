@@ -9,7 +9,11 @@ multi-ray intersection (``multiview``) and the TIN surface (``surface``).
 
 from __future__ import annotations
 
+import multiprocessing
+import os
+import queue
 import time
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -175,6 +179,8 @@ class TorsoConfig:
     fuse_cell_fraction: float = 0.6  # fusion cell: this fraction of the median point spacing
     poisson_depth: int = 9
     mesh_trim_spacings: float = 3.0  # mesh vertices farther than this many point spacings from the data are cut
+    # arms reconstructed at once, each in its own process (their matching shares the cores); 0: one per core
+    arm_workers: int = 0
 
 
 def fuse_points(points: np.ndarray, normals: np.ndarray, sigma: np.ndarray, cell_mm: float):
@@ -219,17 +225,72 @@ def reconstruct_torso(capture: Capture, rig: Rig, calibration: Calibration, cfg:
     order = [a.id for a in rig.arms]
     reference = rig.reference_arm.id
     surfaces, arm_reports, failed = {}, {}, {}
-    for arm in order:
-        try:
-            surfaces[arm], arm_reports[arm] = reconstruct_arm(capture, rig, calibration, arm, cfg.arm, progress)
+    workers = min(len(order), cfg.arm_workers if cfg.arm_workers > 0 else (os.cpu_count() or 1))
+    if multiprocessing.current_process().daemon:
+        workers = 1  # a daemonic process (a job queue's worker) may not start processes of its own
+    if workers > 1:
+        outcomes = _arms_in_processes(capture, rig, calibration, order, cfg.arm, workers, progress)
+    else:
+        outcomes = ((arm, *_arm_outcome(capture, rig, calibration, arm, cfg.arm, progress)) for arm in order)
+    for arm, result, error in outcomes:
+        if error is None:
+            surfaces[arm], arm_reports[arm] = result
             progress(f"arm {arm}: {arm_reports[arm]['points']} points in {arm_reports[arm]['seconds']['total']:.1f} s")
-        except ValueError as exc:
-            failed[arm] = str(exc)
-            progress(f"arm {arm} not reconstructed: {exc}")
+        else:
+            failed[arm] = error
+            progress(f"arm {arm} not reconstructed: {error}")
     if reference not in surfaces:
         raise ValueError(f"the reference arm {reference} could not be reconstructed: {failed.get(reference)}")
     arms_seconds = time.perf_counter() - t0
     return register_arms(surfaces, arm_reports, failed, rig, calibration, cfg, progress, arms_seconds=arms_seconds)
+
+
+def _arm_outcome(capture, rig, calibration, arm, cfg, progress):
+    """``(result, None)`` or ``(None, why)`` when the arm cannot be reconstructed."""
+    try:
+        return reconstruct_arm(capture, rig, calibration, arm, cfg, progress), None
+    except ValueError as exc:
+        return None, str(exc)
+
+
+_PROGRESS = None  # in an arm worker process: the queue its progress messages go to
+
+
+def _init_arm_worker(messages):
+    global _PROGRESS
+    _PROGRESS = messages
+
+
+def _arm_in_worker(capture, rig, calibration, arm, cfg):
+    return _arm_outcome(capture, rig, calibration, arm, cfg, _PROGRESS.put)
+
+
+def _arms_in_processes(capture, rig, calibration, order, cfg, workers, progress):
+    """Yield ``(arm, result, error)`` for every arm, reconstructed in ``workers`` processes, in ``order``.
+
+    The cores are shared out: each process matches with ``cpu_count // workers`` threads.
+    """
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    cfg = replace(cfg, tracking=replace(cfg.tracking, matching=replace(cfg.tracking.matching, threads=threads)))
+    # spawn, not fork: the parent may hold OpenCV's and Open3D's thread pools, which a fork does not carry over
+    ctx = multiprocessing.get_context("spawn")
+    messages = ctx.Queue()
+    progress(f"reconstructing arms {', '.join(order)} in {workers} processes")
+    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_arm_worker, initargs=(messages,)) as pool:
+        futures = {arm: pool.submit(_arm_in_worker, capture, rig, calibration, arm, cfg) for arm in order}
+        for arm in order:
+            while True:
+                try:
+                    progress(messages.get(timeout=0.2))
+                except queue.Empty:
+                    if futures[arm].done():
+                        break
+            yield (arm, *futures[arm].result())
+        while True:  # what the last arms said after the loop stopped listening
+            try:
+                progress(messages.get_nowait())
+            except queue.Empty:
+                break
 
 
 def register_arms(surfaces: dict, arm_reports: dict, failed: dict, rig: Rig, calibration: Calibration,
