@@ -13,6 +13,8 @@ Units: mm in the world frame (the calibration's), px in the images.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,6 +29,7 @@ class IntersectionConfig:
     iterations: int = 5  # Gauss–Newton iterations (converges in 2–3 from the linear start)
     min_rays: int = 2
     min_angle_deg: float = 2.0  # points whose rays meet at a smaller angle are too weak in depth
+    threads: int = 0  # the tracks are intersected in this many blocks at once (0: one per core)
 
 
 def linear_intersection(centres: np.ndarray, directions: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -82,6 +85,13 @@ def intersect(cameras: list[Camera], observations: np.ndarray, cfg: Intersection
     T, K, _ = obs.shape
     if K != len(cameras):
         raise ValueError(f"observations have {K} images but {len(cameras)} cameras are given")
+    threads = cfg.threads if cfg.threads > 0 else (os.cpu_count() or 1)
+    if threads > 1 and T >= 2000:
+        # every track is solved on its own: blocks in threads (numpy releases the GIL in the array work)
+        one = IntersectionConfig(**{**cfg.__dict__, "threads": 1})
+        with ThreadPoolExecutor(threads) as pool:
+            parts = list(pool.map(lambda block: intersect(cameras, block, one), np.array_split(obs, threads)))
+        return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
     used = np.isfinite(obs).all(axis=2)
     centres = np.array([c.C for c in cameras])
     dirs = np.zeros((T, K, 3))

@@ -52,11 +52,12 @@ def sharpness(image: np.ndarray, window: int = 15) -> float:
     defocus removes the fine detail first.
     """
     img = np.asarray(image, dtype=np.float32)
-    c = local_contrast(img, window)
+    # the statistics on every third pixel of every third row: a ninth of the pixels tell the same medians
+    c = local_contrast(img, window)[::3, ::3]
     lit = c > max(4.0, float(np.percentile(c, 95)) / 3)
     if lit.sum() < 100:
         return 0.0
-    lap = np.abs(cv2.Laplacian(img, cv2.CV_32F, ksize=1))
+    lap = np.abs(cv2.Laplacian(img, cv2.CV_32F, ksize=1))[::3, ::3]
     return float(np.median(lap[lit]) / np.median(c[lit]))
 
 
@@ -268,10 +269,11 @@ def _arm_in_worker(capture, rig, calibration, arm, cfg):
 def _arms_in_processes(capture, rig, calibration, order, cfg, workers, progress):
     """Yield ``(arm, result, error)`` for every arm, reconstructed in ``workers`` processes, in ``order``.
 
-    The cores are shared out: each process matches with ``cpu_count // workers`` threads.
+    The cores are shared out: each process matches and intersects with ``cpu_count // workers`` threads.
     """
     threads = max(1, (os.cpu_count() or 1) // workers)
-    cfg = replace(cfg, tracking=replace(cfg.tracking, matching=replace(cfg.tracking.matching, threads=threads)))
+    cfg = replace(cfg, tracking=replace(cfg.tracking, matching=replace(cfg.tracking.matching, threads=threads)),
+                  intersection=replace(cfg.intersection, threads=threads))
     # spawn, not fork: the parent may hold OpenCV's and Open3D's thread pools, which a fork does not carry over
     ctx = multiprocessing.get_context("spawn")
     messages = ctx.Queue()
