@@ -3,7 +3,7 @@
 import numpy as np
 
 from recon_engine.camera import Camera
-from recon_engine.multiview import intersect
+from recon_engine.multiview import IntersectionConfig, intersect
 
 
 def _cameras(k=5):
@@ -65,3 +65,17 @@ def test_points_with_one_ray_are_dropped_with_a_reason():
     obs[0, 0] = [1500, 1000]
     res = intersect(cams, obs)
     assert res["reason"][0] == "fewer than two rays"
+
+
+def test_blocks_in_threads_give_the_same_points_as_one_block():
+    rng = np.random.default_rng(4)
+    cams = _cameras()
+    X = rng.uniform(-150, 150, (3000, 3))
+    obs = _observe(cams, X, 0.1, rng)
+    obs[::7, 2] += 5.0  # blunders, so that rays are removed in both
+    obs[::11, 4] = np.nan
+    one = intersect(cams, obs, IntersectionConfig(threads=1))
+    two = intersect(cams, obs, IntersectionConfig(threads=2))
+    assert set(one) == set(two)
+    for key in one:
+        assert np.array_equal(np.asarray(one[key]), np.asarray(two[key])), key

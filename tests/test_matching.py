@@ -118,3 +118,29 @@ def test_region_growing_follows_steep_skin():
     err = np.abs(m["xy"][grown, 0] - (xy[grown, 0] - disparity(xy[grown, 0])))
     assert grown.sum() > 50 and np.median(err) < 0.05 and np.percentile(err, 95) < 0.2 and err.max() < 1.0
     assert np.all(np.abs(m["xy"][grown, 1] - xy[grown, 1]) < 0.2)
+
+
+def test_least_squares_matching_samples_the_exact_bilinear_image():
+    from recon_engine.matching import _sample_with_gradients, image_gradients
+
+    rng = np.random.default_rng(8)
+    img = rng.uniform(0, 255, (40, 50)).astype(np.float32)
+    x = rng.uniform(-1, 50, 2000)
+    y = rng.uniform(-1, 40, 2000)
+    value, gx, gy = _sample_with_gradients(image_gradients(img), x, y)
+    # the reference: bilinear interpolation in float64, 0 outside
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    inside = (x0 >= 0) & (y0 >= 0) & (x0 < 49) & (y0 < 39)
+    xi, yi, fx, fy = x0[inside], y0[inside], (x - x0)[inside], (y - y0)[inside]
+    f = img.astype(float)
+    ref = ((1 - fx) * (1 - fy) * f[yi, xi] + fx * (1 - fy) * f[yi, xi + 1] + (1 - fx) * fy * f[yi + 1, xi]
+           + fx * fy * f[yi + 1, xi + 1])
+    assert np.abs(value[inside] - ref).max() < 1e-3  # grey levels (float32), not OpenCV's 1/32-px steps
+    assert np.all(value[~inside] == 0)
+    # the gradients are central differences (inside the image), interpolated at OpenCV's 1/32-px steps
+    gref = np.gradient(f, axis=1)
+    interior = (xi >= 1) & (xi + 1 <= 48)
+    xi, yi, fx, fy = xi[interior], yi[interior], fx[interior], fy[interior]
+    gref_at = (gref[yi, xi] * (1 - fx) * (1 - fy) + gref[yi, xi + 1] * fx * (1 - fy)
+               + gref[yi + 1, xi] * (1 - fx) * fy + gref[yi + 1, xi + 1] * fx * fy)
+    assert np.abs(gx[inside][interior] - gref_at).max() < 255 / 32
