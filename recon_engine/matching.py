@@ -382,11 +382,14 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
         if len(todo) == 0:
             break
     r2 = best
-    far = np.asarray(dist).reshape(n, -1)[:, -1]
+    # points far from every anchor have no prediction to trust: not verified (nor refined) at all
+    far = np.asarray(dist).reshape(n, -1)[:, -1] > 6 * cfg.anchor_spacing
+    near = np.nonzero(~far)[0]
     grads = image_gradients(right) if cfg.refine else None
-    reason, out_xy, out_ncc = _verify(left, right, xy, r2, r2["scale"], 0.0, cfg, gradients=grads)
-    reason[(reason == "") & (far > 6 * cfg.anchor_spacing)] = "no reliable disparity in the neighbourhood"
-    out_xy[reason != ""] = np.nan
+    reason[far] = "no reliable disparity in the neighbourhood"
+    out_ncc = np.asarray(r2["ncc"], dtype=float).copy()
+    reason[near], out_xy[near], out_ncc[near] = _verify(left, right, xy[near], {k: v[near] for k, v in r2.items()},
+                                                        r2["scale"][near], 0.0, cfg, gradients=grads)
     # stage 3: region growing. Where the skin turns away from the cameras the disparity changes faster than
     # the anchors' planes follow, and the two views foreshorten it differently; the points matched so far
     # predict both (disparity, stretch and shear of the right window) right next to each unmatched point
