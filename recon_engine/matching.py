@@ -27,7 +27,6 @@ All coordinates are rectified pixels (x = column, y = row).
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -36,6 +35,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .imaging import sample_bilinear
+from .parallel import cores
 
 
 @dataclass(frozen=True)
@@ -58,7 +58,7 @@ class MatchingConfig:
     refine: bool = True  # least-squares matching after the correlation peak
     # px, window of least-squares matching (0: the correlation window of the stage). The stretch and shear are
     # estimated, so a window larger than the correlation's holds more of the pattern without losing the fit:
-    # paper scale, arm A, true calibration: 7 px: RMS 0.048 mm; 9: 0.036 mm; 11: 0.033 mm (2.5 s more per arm)
+    # paper scale, arm A, true calibration: 7 px: RMS 0.048 mm; 9: 0.036 mm; 11: 0.033 mm (1.5-2.5 s more per arm)
     lsm_window: int = 9
     min_lsm_rho: float = 0.8  # least-squares matching must end at least this correlated
     max_lsm_sigma_px: float = 0.1  # and this precise (x shift, 1-sigma)
@@ -80,17 +80,13 @@ class MatchingConfig:
 
 
 def sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Exact bilinear samples (float32) of ``image`` at float positions; 0 outside."""
-    return sample_many((image,), np.asarray(x, dtype=float), np.asarray(y, dtype=float))[0]
+    """Exact bilinear samples (float32) of ``image`` at float positions; 0 outside.
 
-
-def sample_many(images, x: np.ndarray, y: np.ndarray) -> list:
-    """Bilinear samples (float32) of several same-sized images at the same positions; 0 outside.
-
-    The weights are computed once for all images (OpenCV's remap would step
-    positions by 1/32 px, too coarse for least-squares matching).
+    OpenCV's remap would step positions by 1/32 px, too coarse for least-squares matching.
     """
-    h, w = images[0].shape
+    x = np.asarray(x, dtype=float)
+    y = np.asarray(y, dtype=float)
+    h, w = image.shape
     x0 = np.floor(x).astype(np.int64)
     y0 = np.floor(y).astype(np.int64)
     # float32 weights: 1e-7 relative, far below the 1e-3 px the refinement resolves
@@ -98,14 +94,11 @@ def sample_many(images, x: np.ndarray, y: np.ndarray) -> list:
     fy = (y - y0).astype(np.float32)
     inside = (x0 >= 0) & (y0 >= 0) & (x0 < w - 1) & (y0 < h - 1)
     i = np.clip(y0, 0, h - 2) * w + np.clip(x0, 0, w - 2)
-    w00, w01, w10, w11 = (1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy
-    out = []
-    for img in images:
-        flat = np.asarray(img, dtype=np.float32).ravel()
-        v = flat[i] * w00 + flat[i + 1] * w01 + flat[i + w] * w10 + flat[i + w + 1] * w11
-        v[~inside] = 0
-        out.append(v)
-    return out
+    flat = np.asarray(image, dtype=np.float32).ravel()
+    v = (flat[i] * ((1 - fx) * (1 - fy)) + flat[i + 1] * (fx * (1 - fy)) + flat[i + w] * ((1 - fx) * fy)
+         + flat[i + w + 1] * (fx * fy))
+    v[~inside] = 0
+    return v
 
 
 def _box(a: np.ndarray, win: int) -> np.ndarray:
@@ -215,10 +208,6 @@ def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.n
     return {"xy": out, "ncc": best.astype(float), "second": second.astype(float), "at_edge": at_edge}
 
 
-def _threads(cfg) -> int:
-    return cfg.threads if cfg.threads > 0 else (os.cpu_count() or 1)
-
-
 def _chunked(fn, n, chunk, threads=1, **arrays):
     """``fn`` over blocks of at most ``chunk`` of the length-``n`` arrays, in ``threads`` threads, concatenated."""
     if threads > 1:
@@ -245,7 +234,7 @@ def _search(left, right, xy, x_pred, radius, band, window, cfg, scale=1.0, shear
     shear = np.broadcast_to(np.asarray(shear, dtype=float), (n,)).copy()
     return _chunked(lambda **a: ncc_search(left, right, a["xy"], a["x_pred"], radius, band, window, scale=a["scale"],
                                            shear=a["shear"]),
-                    n, max(1, cfg.chunk * 121 // (window * window * max(1, radius // 8 + 1))), _threads(cfg),
+                    n, max(1, cfg.chunk * 121 // (window * window * max(1, radius // 8 + 1))), cores(cfg.threads),
                     xy=xy, x_pred=x_pred, scale=scale, shear=shear)
 
 
@@ -272,7 +261,7 @@ def _plane_fit(anchors, d_anchor, nb, xy, max_cond: float = 1e6):
     return sol[:, 0], sol[:, 1:], ok
 
 
-def _verify(left, right, xy, r, scale, shear, cfg, max_sigma_px=None, gradients=None, window=None):
+def _verify(left, right, xy, r, scale, shear, cfg, max_sigma_px=None, prepared=None, window=None):
     """Checks of NCC matches ``r`` of left points ``xy`` and their least-squares refinement.
 
     Returns ``(reason, xy_right, ncc)``: reason "" for an accepted match,
@@ -300,13 +289,13 @@ def _verify(left, right, xy, r, scale, shear, cfg, max_sigma_px=None, gradients=
     out_ncc = np.asarray(r["ncc"], dtype=float).copy()
     if cfg.refine and valid.any():
         idx = np.nonzero(valid)[0]
-        if gradients is None:
-            gradients = image_gradients(right)
+        if prepared is None:
+            prepared = least_squares_image(right)
         lsm_window = cfg.lsm_window or window
         lsm = _chunked(lambda **a: least_squares_refine(left, right, a["xy_left"], a["xy_right"], window=lsm_window,
                                                         initial_scale=a["scale"], initial_shear=a["shear"],
-                                                        gradients=gradients),
-                       len(idx), cfg.chunk * 2, _threads(cfg), xy_left=xy[idx], xy_right=r["xy"][idx],
+                                                        prepared=prepared),
+                       len(idx), cfg.chunk * 2, cores(cfg.threads), xy_left=xy[idx], xy_right=r["xy"][idx],
                        scale=np.ascontiguousarray(scale[idx]), shear=np.ascontiguousarray(shear[idx]))
         limit = cfg.max_lsm_sigma_px if max_sigma_px is None else max_sigma_px
         good = lsm["converged"] & (lsm["rho"] >= cfg.min_lsm_rho) & (lsm["sigma"] <= limit)
@@ -385,11 +374,11 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
     # points far from every anchor have no prediction to trust: not verified (nor refined) at all
     far = np.asarray(dist).reshape(n, -1)[:, -1] > 6 * cfg.anchor_spacing
     near = np.nonzero(~far)[0]
-    grads = image_gradients(right) if cfg.refine else None
+    prepared = least_squares_image(right) if cfg.refine else None
     reason[far] = "no reliable disparity in the neighbourhood"
     out_ncc = np.asarray(r2["ncc"], dtype=float).copy()
     reason[near], out_xy[near], out_ncc[near] = _verify(left, right, xy[near], {k: v[near] for k, v in r2.items()},
-                                                        r2["scale"][near], 0.0, cfg, gradients=grads)
+                                                        r2["scale"][near], 0.0, cfg, prepared=prepared)
     # stage 3: region growing. Where the skin turns away from the cameras the disparity changes faster than
     # the anchors' planes follow, and the two views foreshorten it differently; the points matched so far
     # predict both (disparity, stretch and shear of the right window) right next to each unmatched point
@@ -424,7 +413,7 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
             break
         r3 = _search(left, right, xy[todo], xy[todo, 0] - d_pred, cfg.grow_search_px, cfg.band, cfg.grow_window, cfg,
                      scale=scale, shear=shear)
-        why, xy3, ncc3 = _verify(left, right, xy[todo], r3, scale, shear, cfg, cfg.grow_max_lsm_sigma_px, grads,
+        why, xy3, ncc3 = _verify(left, right, xy[todo], r3, scale, shear, cfg, cfg.grow_max_lsm_sigma_px, prepared,
                                  cfg.grow_window)
         won = why == ""
         reason[todo] = np.where(won, "", why)  # the last attempt's verdict
@@ -437,7 +426,7 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
     return {"xy": out_xy, "ncc": out_ncc, "valid": valid, "reason": reason}
 
 
-def image_gradients(image: np.ndarray) -> tuple:
+def least_squares_image(image: np.ndarray) -> tuple:
     """What least-squares matching samples of an image, laid out for OpenCV's remap.
 
     Returns ``(corners, gradients)``: (H, W, 4) float32 of each pixel's
@@ -460,7 +449,7 @@ def image_gradients(image: np.ndarray) -> tuple:
 
 
 def _sample_with_gradients(prepared: tuple, x: np.ndarray, y: np.ndarray):
-    """Exact bilinear values and interpolated gradients (float32, shape of ``x``) of ``image_gradients`` output.
+    """Exact bilinear values and interpolated gradients (float32, shape of ``x``) of ``least_squares_image`` output.
 
     The four corners come from one nearest-pixel remap (fast, in OpenCV) and
     are weighted here with the exact fractions: OpenCV's bilinear remap rounds
@@ -484,7 +473,7 @@ def _sample_with_gradients(prepared: tuple, x: np.ndarray, y: np.ndarray):
 
 def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, xy_right: np.ndarray,
                          window: int = 11, iterations: int = 8, shift_y: bool = True, initial_scale=1.0,
-                         initial_shear=0.0, gradients: tuple | None = None) -> dict:
+                         initial_shear=0.0, prepared: tuple | None = None) -> dict:
     """Adaptive least-squares matching (Gruen 1985) of windows already matched to about a pixel.
 
     The right window is an affine image of the left one along the row
@@ -500,11 +489,13 @@ def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarra
     h = window // 2
     n = len(xy_left)
     off = np.arange(-h, h + 1, dtype=float)
-    dx = np.broadcast_to(off[None, None, :], (n, window, window))
-    dy = np.broadcast_to(off[None, :, None], (n, window, window))
-    L = sample(left, xy_left[:, 0, None, None] + dx, xy_left[:, 1, None, None] + dy).reshape(n, -1)
-    # the right image laid out for sampling with its gradients: pass it in when refining several batches on one image
-    prepared = gradients if gradients is not None else image_gradients(right)
+    # the window's pixel offsets (window², the same for every point)
+    ex = np.tile(off, window)
+    ey = np.repeat(off, window)
+    L = sample(left, xy_left[:, 0, None] + ex, xy_left[:, 1, None] + ey)
+    # the right image laid out for sampling with its gradients (least_squares_image): pass it in when refining
+    # several batches on one image
+    prepared = prepared if prepared is not None else least_squares_image(right)
     # parameters: a0 a1 a2 b0 b1 b2 gain offset
     p = np.zeros((n, 8))
     p[:, 1] = np.asarray(initial_scale, dtype=float) - 1.0
@@ -512,8 +503,7 @@ def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarra
     start = p[:, :3].copy()
     p[:, 6] = 1.0
     base = np.asarray(xy_right, dtype=float).copy()
-    ddx, ddy = dx.reshape(n, -1), dy.reshape(n, -1)
-    ex32, ey32 = ddx[0].astype(np.float32), ddy[0].astype(np.float32)
+    ex32, ey32 = ex.astype(np.float32), ey.astype(np.float32)
     active = np.ones(n, bool)
     free = [0, 1, 2, 3, 6, 7] if shift_y else [0, 1, 2, 6, 7]
     k = len(free)
@@ -525,7 +515,7 @@ def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarra
     for it in range(iterations):
         if len(running) == 0:
             break
-        q, ex, ey = p[running], ddx[running], ddy[running]
+        q = p[running]
         x = base[running, 0, None] + ex + q[:, 0, None] + q[:, 1, None] * ex + q[:, 2, None] * ey
         y = base[running, 1, None] + ey + q[:, 3, None] + q[:, 4, None] * ex + q[:, 5, None] * ey
         Rv, gx, gy = _sample_with_gradients(prepared, x, y)

@@ -13,13 +13,13 @@ Units: mm in the world frame (the calibration's), px in the images.
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from .camera import Camera, _distort_jacobian, distort, pixel_to_ray
+from .parallel import cores
 
 
 @dataclass(frozen=True)
@@ -85,10 +85,10 @@ def intersect(cameras: list[Camera], observations: np.ndarray, cfg: Intersection
     T, K, _ = obs.shape
     if K != len(cameras):
         raise ValueError(f"observations have {K} images but {len(cameras)} cameras are given")
-    threads = cfg.threads if cfg.threads > 0 else (os.cpu_count() or 1)
+    threads = cores(cfg.threads)
     if threads > 1 and T >= 2000:
         # every track is solved on its own: blocks in threads (numpy releases the GIL in the array work)
-        one = IntersectionConfig(**{**cfg.__dict__, "threads": 1})
+        one = replace(cfg, threads=1)
         with ThreadPoolExecutor(threads) as pool:
             parts = list(pool.map(lambda block: intersect(cameras, block, one), np.array_split(obs, threads)))
         return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}

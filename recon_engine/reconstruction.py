@@ -10,7 +10,6 @@ multi-ray intersection (``multiview``) and the TIN surface (``surface``).
 from __future__ import annotations
 
 import multiprocessing
-import os
 import queue
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -25,6 +24,7 @@ from .epipolar import rig_centre, subject_depth_bounds
 from .features import local_contrast
 from .formats import Calibration, Capture, FormatError, Rig, load_image
 from .multiview import IntersectionConfig, intersect
+from .parallel import cores
 from .registration import (ICPatchConfig, Transform, chain_initial, multi_surface_registration, pair_fit,
                            patch_indices, weak_arms)
 from .surface import PointSurface, make_surface, off_surface, small_components, subset
@@ -226,7 +226,7 @@ def reconstruct_torso(capture: Capture, rig: Rig, calibration: Calibration, cfg:
     order = [a.id for a in rig.arms]
     reference = rig.reference_arm.id
     surfaces, arm_reports, failed = {}, {}, {}
-    workers = min(len(order), cfg.arm_workers if cfg.arm_workers > 0 else (os.cpu_count() or 1))
+    workers = min(len(order), cores(cfg.arm_workers))
     if multiprocessing.current_process().daemon:
         workers = 1  # a daemonic process (a job queue's worker) may not start processes of its own
     if workers > 1:
@@ -271,7 +271,7 @@ def _arms_in_processes(capture, rig, calibration, order, cfg, workers, progress)
 
     The cores are shared out: each process matches and intersects with ``cpu_count // workers`` threads.
     """
-    threads = max(1, (os.cpu_count() or 1) // workers)
+    threads = max(1, cores() // workers)
     cfg = replace(cfg, tracking=replace(cfg.tracking, matching=replace(cfg.tracking.matching, threads=threads)),
                   intersection=replace(cfg.intersection, threads=threads))
     # spawn, not fork: the parent may hold OpenCV's and Open3D's thread pools, which a fork does not carry over

@@ -121,13 +121,13 @@ def test_region_growing_follows_steep_skin():
 
 
 def test_least_squares_matching_samples_the_exact_bilinear_image():
-    from recon_engine.matching import _sample_with_gradients, image_gradients
+    from recon_engine.matching import _sample_with_gradients, least_squares_image
 
     rng = np.random.default_rng(8)
     img = rng.uniform(0, 255, (40, 50)).astype(np.float32)
     x = rng.uniform(-1, 50, 2000)
     y = rng.uniform(-1, 40, 2000)
-    value, gx, gy = _sample_with_gradients(image_gradients(img), x, y)
+    value, gx, gy = _sample_with_gradients(least_squares_image(img), x, y)
     # the reference: bilinear interpolation in float64, 0 outside
     x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
     inside = (x0 >= 0) & (y0 >= 0) & (x0 < 49) & (y0 < 39)
