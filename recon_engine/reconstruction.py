@@ -148,6 +148,10 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     t3 = time.perf_counter()
     surface = make_surface(res["X"][keep], cams, data={"sigma_mm": sigma[keep].astype(np.float32),
                                                        "rays": res["rays"][keep].astype(np.int32)})
+    # precision along the skin's normal: what a normal distance to another arm's patch inherits (a point seen
+    # obliquely is weak along its rays, mostly across the normal, so this is often far below sigma_mm)
+    cov_n = np.einsum("ni,nij,nj->n", surface.normals, res["cov"][keep], surface.normals)
+    surface = replace(surface, data={**surface.data, "sigma_normal_mm": np.sqrt(np.maximum(cov_n, 0)).astype(np.float32)})
     # islands: wrong matches that agree with each other, cut off from the skin by the TIN's edge rules;
     # they share no patch with the rest, so dropping them leaves the other points' patches and normals as they are
     kept = np.nonzero(keep)[0]

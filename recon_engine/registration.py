@@ -78,6 +78,9 @@ class ICPatchConfig:
     # 0.44 mm points), and 15-34 where C and D slid 6.6-76 mm after the weak pair B-C dropped out. 6 lies
     # between, and stays far above what the paper scale needs (limit there ~0.43 mm)
     max_position_sigma_factor: float = 6.0
+    # weight each normal distance by the precision of the point and of the patch along the normal (the arm
+    # surfaces' sigma_normal_mm, from the intersection's covariance): 1 / (sigma_point^2 + sigma_patch^2)
+    weighted: bool = False
 
 
 @dataclass
@@ -143,13 +146,17 @@ class PatchIndex:
         self.anchor = P[F[:, 0]]
         # unit skin normals at the vertices: with them a patch stands for the curved skin, not its chord
         self.vertex_normals = None if vertex_normals is None else np.asarray(vertex_normals, dtype=float)
+        # the vertices' precision along the skin's normal (mm), where the surface has it
+        vs = (surface.data or {}).get("sigma_normal_mm")
+        self.vertex_sigma = None if vs is None else np.asarray(vs, dtype=float)
 
     def closest(self, x: np.ndarray, margin: float):
         """Patch id (N,), whether ``x`` projects into its interior (N,), patch normal (N, 3), the point of
-        the patch under ``x`` (N, 3) and the distance of ``x`` to the surface (N,, mm)."""
+        the patch under ``x`` (N, 3), the distance of ``x`` to the surface (N,, mm) and the patch's precision
+        along its normal there (N,, mm; NaN where the surface has no ``sigma_normal_mm``)."""
         if len(x) == 0:
             z = np.zeros((0, 3))
-            return np.zeros(0, np.int64), np.zeros(0, bool), z, z, np.zeros(0)
+            return np.zeros(0, np.int64), np.zeros(0, bool), z, z, np.zeros(0), np.zeros(0)
         ans = self.scene.compute_closest_points(o3d.core.Tensor(np.asarray(x, np.float32)))
         gap = np.linalg.norm(np.asarray(x, dtype=float) - ans["points"].numpy(), axis=1)
         pid = ans["primitive_ids"].numpy().astype(np.int64)
@@ -172,7 +179,9 @@ class PatchIndex:
             # and the curved patch's normal there (the vertex normals average several patches: less noisy)
             n = np.sum(w[:, :, None] * NV, axis=1)
             n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        return pid, inside, n, p0, gap
+        sigma = (np.full(len(pid), np.nan) if self.vertex_sigma is None
+                 else np.sum(np.clip(w, 0, 1) * self.vertex_sigma[self.surface.faces[pid]], axis=1))
+        return pid, inside, n, p0, gap, sigma
 
 
 def patch_indices(surfaces: dict, cfg: ICPatchConfig) -> dict:
@@ -216,7 +225,7 @@ def _count_pairs(points, normals, index, transform, max_distance, cfg, sample: i
 def correspondences(points, normals, index: PatchIndex, transform: Transform, max_distance: float,
                     cfg: ICPatchConfig, near: dict | None = None):
     """Accepted point–patch pairs under ``transform``: (point ids, patch normal, point of the patch under the
-    point, normal distance).
+    point, normal distance, patch precision along its normal (mm, NaN if unknown)).
 
     ``near`` is an optional dict kept by the caller between calls on the same
     points and patches: points that were far from the surface at a full
@@ -234,7 +243,7 @@ def correspondences(points, normals, index: PatchIndex, transform: Transform, ma
             near["gap"], near["at"], moved = None, transform, 0.0  # (re)start: query every point
         else:
             sel = np.nonzero(near["gap"] - moved <= max_distance)[0]
-    pid, inside, n, p0, gap = index.closest(x[sel], cfg.edge_margin)
+    pid, inside, n, p0, gap, patch_sigma = index.closest(x[sel], cfg.edge_margin)
     if near is not None and near["gap"] is None:
         near["gap"] = gap
     d = np.sum((x[sel] - p0) * n, axis=1)
@@ -243,7 +252,7 @@ def correspondences(points, normals, index: PatchIndex, transform: Transform, ma
         cosang = np.sum(transform.rotate(normals[sel]) * n, axis=1)
         ok &= cosang >= np.cos(np.radians(cfg.max_normal_angle_deg))
     k = np.nonzero(ok)[0]
-    return sel[k], n[k], p0[k], d[k]
+    return sel[k], n[k], p0[k], d[k], patch_sigma[k]
 
 
 def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None = None,
@@ -268,7 +277,7 @@ def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None
     for it in range(1, cfg.max_iterations + 1):
         if it <= cfg.freeze_after:
             pairs_now = correspondences(X, moving.normals, index, T, dist, cfg, near)
-        idx, n, p0, _ = pairs_now
+        idx, n, p0, _, _ = pairs_now
         d = np.sum((T.apply(X[idx]) - p0) * n, axis=1)
         if len(idx) < 7:
             raise ValueError(f"ICPatch: only {len(idx)} point-patch pairs within {dist:.1f} mm: "
@@ -293,7 +302,7 @@ def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None
                           and abs(ds) < cfg.tol_scale):
             converged = True
             break
-    idx, n, p0, d = correspondences(X, moving.normals, index, T, dist, cfg, near)
+    idx, n, p0, d, _ = correspondences(X, moving.normals, index, T, dist, cfg, near)
     Y = T.apply(X[idx]) - T.apply(centre)
     J = np.column_stack([np.sum(n * Y, axis=1), np.cross(Y, n), n])
     dof = max(len(idx) - (7 if cfg.estimate_scale else 6), 1)
@@ -380,6 +389,20 @@ def chain_initial(surfaces: dict, order: list, reference: str, cfg: ICPatchConfi
     return T, results
 
 
+def _pair_weights(moving: PointSurface, sample: np.ndarray, weighted: bool):
+    """``f(point ids, patch sigmas) -> weights`` of a pair's normal distances: ones, or with ``weighted``
+    ``1 / (sigma_point^2 + sigma_patch^2)`` (mm^-2) where both surfaces carry their precision along the normal."""
+    sig = (moving.data or {}).get("sigma_normal_mm")
+    if not weighted or sig is None:
+        return lambda idx, patch_sigma: np.ones(len(idx))
+    sig = np.asarray(sig, dtype=float)[sample]
+
+    def f(idx, patch_sigma):
+        var = sig[idx] ** 2 + patch_sigma ** 2
+        return np.where(np.isfinite(var) & (var > 0), 1.0 / np.where(var > 0, var, 1.0), 1.0)
+    return f
+
+
 def _pair_blocks(a, b, x, foot, n, col, centres) -> list:
     """Jacobian blocks ``(column, J)`` of a pair's normal distances for its free arms.
 
@@ -434,6 +457,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         index[(a, b)], which[(a, b)] = choose_patches(
             surfaces[a].points[idx_all], surfaces[a].normals[idx_all], indices[b],
             T[b].inverse().compose(T[a]), dist[(a, b)], cfg)
+    weights = {p: _pair_weights(surfaces[p[0]], sample[p], cfg.weighted) for p in pairs}
     converged = False
     it = 0
     frozen = {}
@@ -454,11 +478,11 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
                                                  cfg, near[(a, b)])
             # after a few iterations the pairs are kept, so the adjustment converges instead of
             # jittering as points at the acceptance limit come and go
-            idx, n_loc, p0_loc, _ = frozen[(a, b)]
+            idx, n_loc, p0_loc, _, patch_sigma = frozen[(a, b)]
             if len(idx) < cfg.min_pairs:
                 # a pair that barely overlaps says nothing reliable: it is left out (and reported)
                 weak.add((a, b))
-                stats[(a, b)] = (np.zeros(0), 0, len(idx_all))
+                stats[(a, b)] = (np.zeros(0), 0, len(idx_all), np.zeros(0))
                 continue
             weak.discard((a, b))
             d_loc = np.sum((rel.apply(X[idx]) - p0_loc) * n_loc, axis=1)
@@ -466,12 +490,13 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             n = T[b].rotate(n_loc)
             d = d_loc * T[b].scale
             foot = x - d[:, None] * n
-            stats[(a, b)] = (d, len(idx), len(idx_all))
+            wt = weights[(a, b)](idx, patch_sigma)
+            stats[(a, b)] = (d, len(idx), len(idx_all), wt)
             blocks = _pair_blocks(a, b, x, foot, n, col, centres)
             for ca, Ja in blocks:
-                rhs[ca:ca + 7] -= Ja.T @ d
+                rhs[ca:ca + 7] -= Ja.T @ (wt * d)
                 for cb, Jb in blocks:
-                    N[ca:ca + 7, cb:cb + 7] += Ja.T @ Jb
+                    N[ca:ca + 7, cb:cb + 7] += Ja.T @ (wt[:, None] * Jb)
         for a in free:
             N[col[a], col[a]] += scale_weight
         # every arm must hang on the reference through pairs that overlap
@@ -489,7 +514,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         # corrections far below their own standard deviations also count as vanished: with few
         # points the set of pairs keeps changing a little and the corrections jitter at that level
         n_obs = sum(len(st[0]) for st in stats.values())
-        s0_it = np.sqrt(sum(float(np.sum(st[0] ** 2)) for st in stats.values()) / max(n_obs - n_par, 1))
+        s0_it = np.sqrt(sum(float(np.sum(st[3] * st[0] ** 2)) for st in stats.values()) / max(n_obs - n_par, 1))
         sd = s0_it * np.sqrt(np.abs(np.diag(np.linalg.inv(N))))
         negligible = bool(np.all(np.abs(dx) <= cfg.negligible_sigma * np.maximum(sd, 1e-15)))
         biggest = 0.0
@@ -500,7 +525,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             T[a] = Transform(T[a].scale * (1 + ds), dR @ T[a].R, (1 + ds) * dR @ (T[a].t - c) + c + dt)
             biggest = max(biggest, np.linalg.norm(w) / cfg.tol_rotation_rad, np.linalg.norm(dt) / cfg.tol_translation_mm,
                           abs(ds) / cfg.tol_scale)
-        for p, (d, _, _) in stats.items():
+        for p, (d, _, _, _) in stats.items():
             if len(d):
                 dist[p] = max(cfg.min_distance_mm, min(dist[p], cfg.tighten_k * float(np.sqrt(np.mean(d ** 2)))))
         if biggest < 1.0 or negligible:
@@ -508,7 +533,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             break
     # figures at the solution; covariance from the last normal equations
     dof = max(sum(len(s[0]) for s in stats.values()) - n_par, 1)
-    s0 = float(np.sqrt(sum(float(np.sum(s[0] ** 2)) for s in stats.values()) / dof))
+    s0 = float(np.sqrt(sum(float(np.sum(s[3] * s[0] ** 2)) for s in stats.values()) / dof))
     cov = s0 ** 2 * np.linalg.inv(N)
     names = ("scale", "omega_rad", "phi_rad", "kappa_rad", "tx_mm", "ty_mm", "tz_mm")
     sig = {a: dict(zip(names, map(float, np.sqrt(np.diag(cov)[col[a]:col[a] + 7])))) for a in free}
@@ -531,10 +556,11 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         foot_b = xb - np.sum((xb - p0_loc) * n_loc, axis=1)[:, None] * n_loc
         n = T[b].rotate(smooth_normals(surfaces[b], foot_b, trees[b]))
         x, foot = T[a].apply(X), T[b].apply(foot_b)
+        wt = stats[(a, b)][3][::k]
         blocks = _pair_blocks(a, b, x, foot, n, col, centres)
         for ca, Ja in blocks:
             for cb, Jb in blocks:
-                Ng[ca:ca + 7, cb:cb + 7] += k * (Ja.T @ Jb)
+                Ng[ca:ca + 7, cb:cb + 7] += k * (Ja.T @ (wt[:, None] * Jb))
     for a in free:
         Ng[col[a], col[a]] += scale_weight
     cov_g = s0 ** 2 * np.linalg.pinv(Ng)
@@ -543,7 +569,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
     pair_rows = []
     loose = ICPatchConfig(max_normal_angle_deg=90.0, edge_margin=cfg.edge_margin)
     forward = set(neighbour_pairs(arms))
-    for (a, b), (d, k, n_all) in stats.items():
+    for (a, b), (d, k, n_all, _) in stats.items():
         if (a, b) not in forward:
             continue
         # the overlap: points over the interior of a patch of b within a generous distance
@@ -613,7 +639,7 @@ def pair_fit(moving: PointSurface, fixed: PointSurface, T_moving: Transform, T_f
     cfg = cfg or ICPatchConfig()
     rel = T_fixed.inverse().compose(T_moving)
     # all patches: the same measure whichever patches a registration used
-    idx, _, _, d = correspondences(moving.points, moving.normals, PatchIndex(fixed), rel,
+    idx, _, _, d, _ = correspondences(moving.points, moving.normals, PatchIndex(fixed), rel,
                                    max_distance_mm, cfg)
     d = d * T_fixed.scale
     return {"average_normal_distance_mm": float(np.mean(np.abs(d))) if len(d) else None,
