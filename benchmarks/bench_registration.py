@@ -42,6 +42,9 @@ VARIANTS = {
     "ours_weighted": {"weighted": True},
     "ours_rigid": {"estimate_scale": False},
     "ours_weighted_rigid": {"weighted": True, "estimate_scale": False},
+    "ours_scale_sigma_1e-4": {"scale_sigma": 1e-4},
+    "ours_scale_sigma_2e-5": {"scale_sigma": 2e-5},
+    "ours_weighted_scale_sigma_2e-5": {"weighted": True, "scale_sigma": 2e-5},
 }
 
 

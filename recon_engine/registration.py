@@ -40,6 +40,10 @@ class ICPatchConfig:
     tol_translation_mm: float = 1e-3
     tol_scale: float = 1e-5
     estimate_scale: bool = True
+    # a priori standard deviation of each arm's scale about 1 in the multiple registration (None: free). The
+    # calibration fixes every arm's scale to the test field's survey; the pseudo-observation keeps the scale
+    # from absorbing what is left of the surfaces' shape errors in narrow overlaps
+    scale_sigma: float | None = None
     # patches with an edge longer than this many median edges are not used (None: all): long patches are chords
     # below the curved skin where an arm sees it obliquely, and their sagitta biases the solution. Paper scale,
     # visit0-a, our calibration, flat patches, displacement errors of B, C, D: all patches 0.0028-0.0054 deg, 0.032-0.055 mm;
@@ -464,6 +468,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
     near = {p: {} for p in pairs}
     weak = set()
     scale_weight = 0.0 if cfg.estimate_scale else 1e12
+    s0_prior = 1.0 if cfg.weighted else 0.05  # unit-weight sigma before the first iteration (mm when unweighted)
     for it in range(1, cfg.max_iterations + 1):
         N = np.zeros((n_par, n_par))
         rhs = np.zeros(n_par)
@@ -499,6 +504,11 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
                     N[ca:ca + 7, cb:cb + 7] += Ja.T @ (wt[:, None] * Jb)
         for a in free:
             N[col[a], col[a]] += scale_weight
+            if cfg.estimate_scale and cfg.scale_sigma:
+                # pseudo-observation scale = 1 +- scale_sigma, weighted against the normal distances' unit weight
+                w_s = s0_prior ** 2 / cfg.scale_sigma ** 2
+                N[col[a], col[a]] += w_s
+                rhs[col[a]] -= w_s * (T[a].scale - 1.0)
         # every arm must hang on the reference through pairs that overlap
         linked, grew = {reference}, True
         while grew:
@@ -516,6 +526,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         n_obs = sum(len(st[0]) for st in stats.values())
         s0_it = np.sqrt(sum(float(np.sum(st[3] * st[0] ** 2)) for st in stats.values()) / max(n_obs - n_par, 1))
         sd = s0_it * np.sqrt(np.abs(np.diag(np.linalg.inv(N))))
+        s0_prior = float(s0_it) if s0_it > 0 else s0_prior
         negligible = bool(np.all(np.abs(dx) <= cfg.negligible_sigma * np.maximum(sd, 1e-15)))
         biggest = 0.0
         for a in free:
@@ -562,7 +573,8 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             for cb, Jb in blocks:
                 Ng[ca:ca + 7, cb:cb + 7] += k * (Ja.T @ (wt[:, None] * Jb))
     for a in free:
-        Ng[col[a], col[a]] += scale_weight
+        Ng[col[a], col[a]] += scale_weight + (s0 ** 2 / cfg.scale_sigma ** 2
+                                              if cfg.estimate_scale and cfg.scale_sigma else 0.0)
     cov_g = s0 ** 2 * np.linalg.pinv(Ng)
     strength = {a: arm_strength(cov_g[col[a]:col[a] + 7, col[a]:col[a] + 7], T[a].apply(surfaces[a].points),
                                 centres[a]) for a in free}
