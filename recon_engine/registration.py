@@ -44,6 +44,11 @@ class ICPatchConfig:
     # calibration fixes every arm's scale to the test field's survey; the pseudo-observation keeps the scale
     # from absorbing what is left of the surfaces' shape errors in narrow overlaps
     scale_sigma: float | None = None
+    # systematic error of each neighbouring pair's relative placement, 1 sigma (scale, rotation [rad], translation
+    # [mm]; None: none). Each arm's surface carries its own cameras' calibration errors, so two surfaces fit each
+    # other best at a placement off the true one by more than their points' noise allows; the multiple
+    # registration then holds each pair at most this firmly, and spreads the loop's misclosure accordingly
+    pair_sigma: tuple | None = None
     # patches with an edge longer than this many median edges are not used (None: all): long patches are chords
     # below the curved skin where an arm sees it obliquely, and their sagitta biases the solution. Paper scale,
     # visit0-a, our calibration, flat patches, displacement errors of B, C, D: all patches 0.0028-0.0054 deg, 0.032-0.055 mm;
@@ -469,9 +474,12 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
     weak = set()
     scale_weight = 0.0 if cfg.estimate_scale else 1e12
     s0_prior = 1.0 if cfg.weighted else 0.05  # unit-weight sigma before the first iteration (mm when unweighted)
+    forward = neighbour_pairs(arms)
+    canon = {**{p: p for p in forward}, **{(b, a): (a, b) for a, b in forward}}
     for it in range(1, cfg.max_iterations + 1):
         N = np.zeros((n_par, n_par))
         rhs = np.zeros(n_par)
+        pair_error = {}  # per neighbouring pair: normal-equation blocks of its systematic relative placement error
         centres = {a: T[a].apply(surfaces[a].points.mean(axis=0)) for a in arms}
         stats = {}
         for (a, b) in pairs:
@@ -502,6 +510,23 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
                 rhs[ca:ca + 7] -= Ja.T @ (wt * d)
                 for cb, Jb in blocks:
                     N[ca:ca + 7, cb:cb + 7] += Ja.T @ (wt[:, None] * Jb)
+            if cfg.pair_sigma is not None:
+                # the pair's error moves its first arm against its second: the same columns as that arm's own
+                key = canon[(a, b)]
+                Je = _pair_blocks(a, b, x, foot, n, {key[0]: 0}, centres)[0][1]
+                Nxe, Nee, re = pair_error.setdefault(key, (np.zeros((n_par, 7)), np.zeros((7, 7)), np.zeros(7)))
+                for ca, Ja in blocks:
+                    Nxe[ca:ca + 7] += Ja.T @ (wt[:, None] * Je)
+                Nee += Je.T @ (wt[:, None] * Je)
+                re -= Je.T @ (wt * d)
+        if pair_error:
+            # each pair's error is a nuisance with a priori sigma pair_sigma, eliminated from the normal equations
+            s_s, s_r, s_t = cfg.pair_sigma
+            W = s0_prior ** 2 / np.array([s_s if cfg.estimate_scale else 1e-9, s_r, s_r, s_r, s_t, s_t, s_t]) ** 2
+            for Nxe, Nee, re in pair_error.values():
+                K = np.linalg.solve(Nee + np.diag(W), Nxe.T).T  # Nxe (Nee + W)^-1
+                N -= K @ Nxe.T
+                rhs -= K @ re
         for a in free:
             N[col[a], col[a]] += scale_weight
             if cfg.estimate_scale and cfg.scale_sigma:

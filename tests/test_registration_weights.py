@@ -63,3 +63,21 @@ def test_a_scale_prior_holds_each_arms_scale_near_one():
         assert abs(held["transforms"][a].scale - 1.0) < 2e-6
     # free, the rims' outward bias is partly taken up as scale
     assert max(abs(free["transforms"][a].scale - 1.0) for a in ARMS[1:]) > 1e-5
+
+
+def test_a_negligible_pair_error_leaves_the_adjustment_as_it_was():
+    surfaces, truth = _four_arm_surfaces(smooth_c=False, noise=0.02)
+    plain = _register(surfaces, ICPatchConfig())
+    tiny = _register(surfaces, ICPatchConfig(pair_sigma=(1e-12, 1e-12, 1e-10)))
+    for a in ARMS[1:]:
+        assert np.allclose(tiny["transforms"][a].t, plain["transforms"][a].t, atol=1e-4)
+
+
+def test_each_pairs_systematic_error_shows_in_the_arms_sigmas():
+    surfaces, truth = _four_arm_surfaces(smooth_c=False, noise=0.02)
+    plain = _register(surfaces, ICPatchConfig())["report"]["registration"]["sigmas"]
+    held = _register(surfaces, ICPatchConfig(pair_sigma=(2e-5, 3.5e-5, 0.01)))["report"]["registration"]["sigmas"]
+    for a in ARMS[1:]:
+        # arm C hangs on A through two pairs each side: its translation is no surer than a pair's 0.01 mm
+        assert held[a]["tx_mm"] > plain[a]["tx_mm"]
+        assert held[a]["tx_mm"] > 0.005
