@@ -52,6 +52,14 @@ VARIANTS = {
     "ours_rigid_pair_sigma_10um": {"estimate_scale": False, "pair_sigma": (2e-5, 3.5e-5, 0.01)},
     "ours_rigid_pair_sigma_5um": {"estimate_scale": False, "pair_sigma": (1e-5, 1.75e-5, 0.005)},
     "ours_pair_sigma_2.5um": {"pair_sigma": (5e-6, 8.75e-6, 0.0025)},
+    "ours_pair_stiffness_1": {"pair_stiffness": 1.0},
+    "ours_pair_stiffness_0.1": {"pair_stiffness": 0.1},
+    "ours_pair_stiffness_10": {"pair_stiffness": 10.0},
+    "ours_rigid_pair_stiffness_1": {"estimate_scale": False, "pair_stiffness": 1.0},
+    "ours_rigid_pair_stiffness_10": {"estimate_scale": False, "pair_stiffness": 10.0},
+    "ours_rigid_pair_stiffness_100": {"estimate_scale": False, "pair_stiffness": 100.0},
+    "ours_rigid_one_way_pair_stiffness_10": {"estimate_scale": False, "symmetric": False, "pair_stiffness": 10.0},
+    "ours_rigid_one_way": {"estimate_scale": False, "symmetric": False},
 }
 DEFAULT_VARIANTS = ["ours", "ours_weighted", "ours_rigid", "ours_scale_sigma_2e-5"]
 

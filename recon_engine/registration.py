@@ -49,6 +49,10 @@ class ICPatchConfig:
     # other best at a placement off the true one by more than their points' noise allows; the multiple
     # registration then holds each pair at most this firmly, and spreads the loop's misclosure accordingly
     pair_sigma: tuple | None = None
+    # or (mm^2, None: not used): that error's covariance is this times the inverse of the pair's point-to-point
+    # normal matrix (the information of Open3D's pose graph edges): a pair is held more firmly the more points
+    # and the wider its overlap, alike in every direction. Takes precedence over pair_sigma
+    pair_stiffness: float | None = None
     # patches with an edge longer than this many median edges are not used (None: all): long patches are chords
     # below the curved skin where an arm sees it obliquely, and their sagitta biases the solution. Paper scale,
     # visit0-a, our calibration, flat patches, displacement errors of B, C, D: all patches 0.0028-0.0054 deg, 0.032-0.055 mm;
@@ -412,6 +416,22 @@ def _pair_weights(moving: PointSurface, sample: np.ndarray, weighted: bool):
     return f
 
 
+def point_normal_matrix(Y: np.ndarray) -> np.ndarray:
+    """``sum J^T J`` (7×7) of the 3D displacements ``ds·Y + w × Y + t`` of points ``Y`` (mm, about the centre of
+    the increments) by (scale, rotation, translation): the point-to-point information of a placement."""
+    Y = np.asarray(Y, dtype=float)
+    YY = Y.T @ Y
+    r2 = float(np.trace(YY))
+    S = Y.sum(axis=0)
+    G = np.zeros((7, 7))
+    G[0, 0] = r2
+    G[0, 4:7] = S
+    G[1:4, 1:4] = r2 * np.eye(3) - YY
+    G[1:4, 4:7] = np.array([[0, -S[2], S[1]], [S[2], 0, -S[0]], [-S[1], S[0], 0]])
+    G[4:7, 4:7] = len(Y) * np.eye(3)
+    return np.triu(G) + np.triu(G, 1).T
+
+
 def _pair_blocks(a, b, x, foot, n, col, centres) -> list:
     """Jacobian blocks ``(column, J)`` of a pair's normal distances for its free arms.
 
@@ -510,23 +530,29 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
                 rhs[ca:ca + 7] -= Ja.T @ (wt * d)
                 for cb, Jb in blocks:
                     N[ca:ca + 7, cb:cb + 7] += Ja.T @ (wt[:, None] * Jb)
-            if cfg.pair_sigma is not None:
+            if cfg.pair_sigma is not None or cfg.pair_stiffness is not None:
                 # the pair's error moves its first arm against its second: the same columns as that arm's own
                 key = canon[(a, b)]
                 Je = _pair_blocks(a, b, x, foot, n, {key[0]: 0}, centres)[0][1]
-                Nxe, Nee, re = pair_error.setdefault(key, (np.zeros((n_par, 7)), np.zeros((7, 7)), np.zeros(7)))
+                Nxe, Nee, re, G = pair_error.setdefault(key, (np.zeros((n_par, 7)), np.zeros((7, 7)), np.zeros(7),
+                                                              np.zeros((7, 7))))
                 for ca, Ja in blocks:
                     Nxe[ca:ca + 7] += Ja.T @ (wt[:, None] * Je)
                 Nee += Je.T @ (wt[:, None] * Je)
                 re -= Je.T @ (wt * d)
-        if pair_error:
-            # each pair's error is a nuisance with a priori sigma pair_sigma, eliminated from the normal equations
-            s_s, s_r, s_t = cfg.pair_sigma
-            W = s0_prior ** 2 / np.array([s_s if cfg.estimate_scale else 1e-9, s_r, s_r, s_r, s_t, s_t, s_t]) ** 2
-            for Nxe, Nee, re in pair_error.values():
-                K = np.linalg.solve(Nee + np.diag(W), Nxe.T).T  # Nxe (Nee + W)^-1
-                N -= K @ Nxe.T
-                rhs -= K @ re
+                G += point_normal_matrix((x if a == key[0] else foot) - centres[key[0]])
+        for Nxe, Nee, re, G in pair_error.values():
+            # each pair's error is a nuisance with an a priori covariance, eliminated from the normal equations
+            if cfg.pair_stiffness is not None:
+                W = s0_prior ** 2 / cfg.pair_stiffness * G
+            else:
+                s_s, s_r, s_t = cfg.pair_sigma
+                W = np.diag(s0_prior ** 2 / np.array([s_s, s_r, s_r, s_r, s_t, s_t, s_t]) ** 2)
+            if not cfg.estimate_scale:
+                W[0, 0] += 1e12
+            K = np.linalg.solve(Nee + W, Nxe.T).T  # Nxe (Nee + W)^-1
+            N -= K @ Nxe.T
+            rhs -= K @ re
         for a in free:
             N[col[a], col[a]] += scale_weight
             if cfg.estimate_scale and cfg.scale_sigma:

@@ -81,3 +81,23 @@ def test_each_pairs_systematic_error_shows_in_the_arms_sigmas():
         # arm C hangs on A through two pairs each side: its translation is no surer than a pair's 0.01 mm
         assert held[a]["tx_mm"] > plain[a]["tx_mm"]
         assert held[a]["tx_mm"] > 0.005
+
+
+def test_the_point_normal_matrix_sums_each_points_displacement_jacobian():
+    from recon_engine.registration import point_normal_matrix
+
+    Y = np.random.default_rng(3).normal(0, 50, (40, 3))
+    G = np.zeros((7, 7))
+    for y in Y:
+        # d(point) = ds * y + w x y + t
+        J = np.column_stack([y, -np.array([[0, -y[2], y[1]], [y[2], 0, -y[0]], [-y[1], y[0], 0]]), np.eye(3)])
+        G += J.T @ J
+    assert np.allclose(point_normal_matrix(Y), G)
+
+
+def test_a_stiff_pair_model_leaves_the_adjustment_as_it_was():
+    surfaces, truth = _four_arm_surfaces(smooth_c=False, noise=0.02)
+    plain = _register(surfaces, ICPatchConfig())
+    stiff = _register(surfaces, ICPatchConfig(pair_stiffness=1e-14))
+    for a in ARMS[1:]:
+        assert np.allclose(stiff["transforms"][a].t, plain["transforms"][a].t, atol=1e-4)
