@@ -101,3 +101,18 @@ def test_a_stiff_pair_model_leaves_the_adjustment_as_it_was():
     stiff = _register(surfaces, ICPatchConfig(pair_stiffness=1e-14))
     for a in ARMS[1:]:
         assert np.allclose(stiff["transforms"][a].t, plain["transforms"][a].t, atol=1e-4)
+
+
+def test_pairs_at_either_surfaces_rim_are_left_out():
+    from recon_engine.registration import PatchIndex, correspondences
+
+    surfaces, truth = _four_arm_surfaces(smooth_c=False, noise=0.02)
+    a, b = surfaces["A"], surfaces["B"]
+    fixed, own = PatchIndex(b), PatchIndex(a)
+    rel = truth["B"].inverse().compose(truth["A"])
+    cfg = ICPatchConfig(rim_margin_mm=15.0)
+    every = correspondences(a.points, a.normals, fixed, rel, 2.0, cfg)  # no rim distances: pair-wise use
+    kept = correspondences(a.points, a.normals, fixed, rel, 2.0, cfg, rim_distance=own.vertex_rim_distance)
+    assert 0 < len(kept[0]) < len(every[0])
+    assert own.vertex_rim_distance[kept[0]].min() >= 15.0
+    assert fixed.rim_tree.query(kept[2])[0].min() >= 15.0
