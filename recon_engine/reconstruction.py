@@ -370,15 +370,18 @@ def register_arms(surfaces: dict, arm_reports: dict, failed: dict, rig: Rig, cal
     # geometric strength: an arm the overlaps leave free to slide fits its neighbours however far it slid
     problems.extend(weak.values())
     for p in multi["pairs"]:
-        if p["pairs"] < cfg.icpatch.min_pairs:
-            warnings.append(f"arms {p['a']} and {p['b']} barely overlap: {p['pairs']} point-patch pairs "
+        if p["adjustment_pairs"] < cfg.icpatch.min_pairs:
+            warnings.append(f"arms {p['a']} and {p['b']} barely overlap: {p['adjustment_pairs']} point-patch pairs "
                             f"(at least {cfg.icpatch.min_pairs} needed); the pair was left out of the adjustment")
         else:
             # what the two surfaces' own precision allows, and never more than the configured floor
             own = 3.0 * max(float(np.median(surfaces[p["a"]].data["sigma_mm"])),
                             float(np.median(surfaces[p["b"]].data["sigma_mm"])))
             limit = max(cfg.icpatch.max_average_distance_mm, own)
-            if p["average_normal_distance_mm"] > limit:
+            if p["average_normal_distance_mm"] is None:
+                problems.append(f"arms {p['a']} and {p['b']} do not fit: no point-patch pair within "
+                                f"{p['acceptance_distance_mm']:.2f} mm at the solution")
+            elif p["average_normal_distance_mm"] > limit:
                 problems.append(f"arms {p['a']} and {p['b']} do not fit: average normal distance "
                                 f"{p['average_normal_distance_mm']:.2f} mm > {limit:.2f} mm")
     for problem in problems:

@@ -16,7 +16,8 @@ one's (mm).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 import open3d as o3d
@@ -139,14 +140,7 @@ class PatchIndex:
                  vertex_normals: np.ndarray | None = None):
         if len(surface.faces) == 0:
             raise ValueError("the surface has no patches to register against")
-        # the TIN's rim (edges of one patch), found on all patches: its distance from each vertex and a tree
-        F = surface.faces
-        E = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
-        edges, count = np.unique(E, axis=0, return_counts=True)
-        rim = np.unique(edges[count == 1])
-        self.rim_tree = cKDTree(surface.points[rim]) if len(rim) else None
-        self.vertex_rim_distance = (self.rim_tree.query(surface.points)[0] if self.rim_tree is not None
-                                    else np.full(len(surface.points), np.inf))
+        self.full_surface = surface  # the rim is that of all patches (see rim_tree)
         if max_edge_factor is not None:
             # long patches are chords far below the curved skin (where the arm sees it obliquely, the TIN
             # stretches): their sagitta biases the normal distances, so only compact patches are used
@@ -176,6 +170,22 @@ class PatchIndex:
         # the vertices' precision along the skin's normal (mm), where the surface has it
         vs = (surface.data or {}).get("sigma_normal_mm")
         self.vertex_sigma = None if vs is None else np.asarray(vs, dtype=float)
+
+    @cached_property
+    def rim_tree(self):
+        """KD-tree of the TIN's rim vertices (on edges of one patch, all patches counted; None if it has none).
+        Built on first use: only the multiple registration's ``rim_margin_mm`` needs it."""
+        F = self.full_surface.faces
+        E = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+        edges, count = np.unique(E, axis=0, return_counts=True)
+        rim = np.unique(edges[count == 1])
+        return cKDTree(self.full_surface.points[rim]) if len(rim) else None
+
+    @cached_property
+    def vertex_rim_distance(self) -> np.ndarray:
+        """Each vertex's distance to the TIN's rim (N,, mm; inf if the TIN has no rim)."""
+        P = self.full_surface.points
+        return self.rim_tree.query(P)[0] if self.rim_tree is not None else np.full(len(P), np.inf)
 
     def closest(self, x: np.ndarray, margin: float):
         """Patch id (N,), whether ``x`` projects into its interior (N,), patch normal (N, 3), the point of
@@ -526,8 +536,10 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             X = surfaces[a].points[idx_all]
             rel = T[b].inverse().compose(T[a])
             if it <= cfg.freeze_after:
+                rim_distance = (indices[a][0].vertex_rim_distance[idx_all] if cfg.rim_margin_mm is not None
+                                else None)
                 frozen[(a, b)] = correspondences(X, surfaces[a].normals[idx_all], index[(a, b)], rel, dist[(a, b)],
-                                                 cfg, near[(a, b)], indices[a][0].vertex_rim_distance[idx_all])
+                                                 cfg, near[(a, b)], rim_distance)
             # after a few iterations the pairs are kept, so the adjustment converges instead of
             # jittering as points at the acceptance limit come and go
             idx, n_loc, p0_loc, _, patch_sigma = frozen[(a, b)]
@@ -650,24 +662,36 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
                                 centres[a]) for a in free}
     pair_rows = []
     loose = ICPatchConfig(max_normal_angle_deg=90.0, edge_margin=cfg.edge_margin)
+    # the paper's Table 1 measures how the registered surfaces fit: every point-patch pair at the solution
+    # within the final acceptance distance, whichever of them the adjustment observed (rim_margin_mm and the
+    # frozen set choose observations; they do not make the rest of the overlap unmatched)
+    fit_cfg = replace(cfg, rim_margin_mm=None)
     forward = set(neighbour_pairs(arms))
-    for (a, b), (d, k, n_all, _) in stats.items():
+    for (a, b), (d_adj, k_adj, n_all, _) in stats.items():
         if (a, b) not in forward:
             continue
-        # the overlap: points over the interior of a patch of b within a generous distance
         idx_all = sample[(a, b)]
+        X = surfaces[a].points[idx_all]
         rel = T[b].inverse().compose(T[a])
-        over_idx = correspondences(surfaces[a].points[idx_all], None, index[(a, b)], rel, cfg.overlap_distance_mm,
-                                   loose)[0]
+        # the overlap: points over the interior of a patch of b within a generous distance
+        over_idx = correspondences(X, None, index[(a, b)], rel, cfg.overlap_distance_mm, loose)[0]
         over = len(over_idx)
-        matched_in_overlap = int(np.isin(frozen[(a, b)][0], over_idx).sum())
+        if k_adj:
+            fit_idx, _, _, d, _ = correspondences(X, surfaces[a].normals[idx_all], index[(a, b)], rel, dist[(a, b)],
+                                                  fit_cfg)
+            d = d * T[b].scale
+        else:  # left out of the adjustment: not presented as fitting
+            fit_idx, d = np.zeros(0, np.int64), np.zeros(0)
+        k = len(d)
+        matched_in_overlap = int(np.isin(fit_idx, over_idx).sum())
         pair_rows.append({"a": a, "b": b, "average_normal_distance_mm": float(np.mean(np.abs(d))) if k else None,
                           "rms_normal_distance_mm": float(np.sqrt(np.mean(d ** 2))) if k else None,
                           "matched_fraction": float(k / max(n_all, 1)),
                           "overlap_fraction": float(over / max(n_all, 1)),
                           "overlap_matched_fraction": float(matched_in_overlap / over) if over else 0.0,
-                          "pairs": int(k), "acceptance_distance_mm": float(dist[(a, b)]),
-                          "patches": which[(a, b)]})
+                          "pairs": int(k), "adjustment_pairs": int(k_adj),
+                          "adjustment_average_normal_distance_mm": float(np.mean(np.abs(d_adj))) if k_adj else None,
+                          "acceptance_distance_mm": float(dist[(a, b)]), "patches": which[(a, b)]})
         if k:
             progress(f"multiple registration {a}-{b}: {pair_rows[-1]['average_normal_distance_mm']:.3f} mm")
         else:

@@ -116,3 +116,17 @@ def test_pairs_at_either_surfaces_rim_are_left_out():
     assert 0 < len(kept[0]) < len(every[0])
     assert own.vertex_rim_distance[kept[0]].min() >= 15.0
     assert fixed.rim_tree.query(kept[2])[0].min() >= 15.0
+
+
+def test_table_1_counts_the_whole_overlap_whichever_pairs_the_adjustment_observed():
+    surfaces, _ = _four_arm_surfaces(smooth_c=False, noise=0.02)
+    plain = _register(surfaces, ICPatchConfig())["report"]["registration"]["pairs"]
+    rim = _register(surfaces, ICPatchConfig(rim_margin_mm=15.0))["report"]["registration"]["pairs"]
+    for p, q in zip(plain, rim):
+        assert (p["a"], p["b"]) == (q["a"], q["b"])
+        # the adjustment left the rim pairs out...
+        assert q["adjustment_pairs"] < 0.9 * p["adjustment_pairs"]
+        # ...but the registered surfaces still fit over the whole overlap
+        assert q["overlap_matched_fraction"] >= 0.95
+        assert abs(q["overlap_matched_fraction"] - p["overlap_matched_fraction"]) < 0.02
+        assert q["pairs"] > q["adjustment_pairs"]
