@@ -292,7 +292,8 @@ def correspondences(points, normals, index: PatchIndex, transform: Transform, ma
         # the multiple registration passes ``rim_distance``, of each of ``points`` to its own surface's rim (mm)
         ok &= rim_distance[sel] >= cfg.rim_margin_mm
         if index.rim_tree is not None:
-            ok &= index.rim_tree.query(p0, distance_upper_bound=cfg.rim_margin_mm)[0] >= cfg.rim_margin_mm
+            k = np.nonzero(ok)[0]  # only the pairs still accepted are looked up
+            ok[k] = index.rim_tree.query(p0[k], distance_upper_bound=cfg.rim_margin_mm)[0] >= cfg.rim_margin_mm
     k = np.nonzero(ok)[0]
     return sel[k], n[k], p0[k], d[k], patch_sigma[k]
 
