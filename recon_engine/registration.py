@@ -57,9 +57,9 @@ class ICPatchConfig:
     # mm (None: off): point-patch pairs whose point lies this close to its own surface's rim, or whose foot this
     # close to the other surface's rim, are not used in the multiple registration. At the true placement the
     # points within 10 mm of a rim lie 1-11 um below the skin and the other's patches there 2-8 um (visit0-a).
-    # 5 mm: displacement error 0.0172 -> 0.0106 mm over 9 arms (docs/benchmarks.md); not yet the default, as the
-    # report's Table 1 counts the pairs left out as unmatched (52-82% of each overlap instead of >= 99.9%)
-    rim_margin_mm: float | None = None
+    # 5 mm: displacement error 0.0172 -> 0.0106 mm over 9 arms (docs/benchmarks.md); 10 mm leaves the narrow
+    # overlaps too few pairs. The report's Table 1 still measures the fit over the whole overlap
+    rim_margin_mm: float | None = 5.0
     # patches with an edge longer than this many median edges are not used (None: all): long patches are chords
     # below the curved skin where an arm sees it obliquely, and their sagitta biases the solution. Paper scale,
     # visit0-a, our calibration, flat patches, displacement errors of B, C, D: all patches 0.0028-0.0054 deg, 0.032-0.055 mm;
