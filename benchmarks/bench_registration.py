@@ -60,12 +60,11 @@ VARIANTS = {
     "ours_rigid_pair_stiffness_100": {"estimate_scale": False, "pair_stiffness": 100.0},
     "ours_rigid_one_way_pair_stiffness_10": {"estimate_scale": False, "symmetric": False, "pair_stiffness": 10.0},
     "ours_rigid_one_way": {"estimate_scale": False, "symmetric": False},
-    "ours_rim_margin_5": {"rim_margin_mm": 5.0},
-    "ours_rigid_rim_margin_5": {"estimate_scale": False, "rim_margin_mm": 5.0},
+    "ours_no_rim_margin": {"rim_margin_mm": None},
     "ours_rim_margin_3": {"rim_margin_mm": 3.0},
     "ours_rim_margin_7": {"rim_margin_mm": 7.0},
 }
-DEFAULT_VARIANTS = ["ours", "ours_weighted", "ours_rigid", "ours_scale_sigma_2e-5"]
+DEFAULT_VARIANTS = ["ours", "ours_no_rim_margin", "ours_rigid", "ours_scale_sigma_2e-5"]
 
 
 def icpatch_edges(surfaces, order, cfg):

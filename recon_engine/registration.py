@@ -16,6 +16,7 @@ one's (mm).
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from functools import cached_property
 
@@ -24,6 +25,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from .bundle import rodrigues
+from .parallel import cores
 from .surface import PointSurface
 
 
@@ -101,6 +103,7 @@ class ICPatchConfig:
     # weight each normal distance by the precision of the point and of the patch along the normal (the arm
     # surfaces' sigma_normal_mm, from the intersection's covariance): 1 / (sigma_point^2 + sigma_patch^2)
     weighted: bool = False
+    threads: int = 0  # the pairs' closest-patch queries run on this many threads; 0: one per core
 
 
 @dataclass
@@ -175,10 +178,13 @@ class PatchIndex:
     def rim_tree(self):
         """KD-tree of the TIN's rim vertices (on edges of one patch, all patches counted; None if it has none).
         Built on first use: only the multiple registration's ``rim_margin_mm`` needs it."""
-        F = self.full_surface.faces
+        F = self.full_surface.faces.astype(np.int64)
         E = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
-        edges, count = np.unique(E, axis=0, return_counts=True)
-        rim = np.unique(edges[count == 1])
+        # each edge as one integer: a 1-D unique is far faster than np.unique(axis=0) on rows
+        key, count = np.unique(E[:, 0] * len(self.full_surface.points) + E[:, 1], return_counts=True)
+        once = key[count == 1]
+        n = len(self.full_surface.points)
+        rim = np.unique(np.concatenate([once // n, once % n]))
         return cKDTree(self.full_surface.points[rim]) if len(rim) else None
 
     @cached_property
@@ -532,15 +538,21 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         pair_error = {}  # per neighbouring pair: normal-equation blocks of its systematic relative placement error
         centres = {a: T[a].apply(surfaces[a].points.mean(axis=0)) for a in arms}
         stats = {}
+        if it <= cfg.freeze_after:
+            # every pair's closest-patch queries at once, on threads (Open3D and numpy release the GIL)
+            def fresh(p):
+                a, b = p
+                idx_all = sample[p]
+                rim_distance = (indices[a][0].vertex_rim_distance[idx_all] if cfg.rim_margin_mm is not None
+                                else None)
+                return correspondences(surfaces[a].points[idx_all], surfaces[a].normals[idx_all], index[p],
+                                       T[b].inverse().compose(T[a]), dist[p], cfg, near[p], rim_distance)
+            with ThreadPoolExecutor(cores(cfg.threads)) as pool:
+                frozen.update(zip(pairs, pool.map(fresh, pairs)))
         for (a, b) in pairs:
             idx_all = sample[(a, b)]
             X = surfaces[a].points[idx_all]
             rel = T[b].inverse().compose(T[a])
-            if it <= cfg.freeze_after:
-                rim_distance = (indices[a][0].vertex_rim_distance[idx_all] if cfg.rim_margin_mm is not None
-                                else None)
-                frozen[(a, b)] = correspondences(X, surfaces[a].normals[idx_all], index[(a, b)], rel, dist[(a, b)],
-                                                 cfg, near[(a, b)], rim_distance)
             # after a few iterations the pairs are kept, so the adjustment converges instead of
             # jittering as points at the acceptance limit come and go
             idx, n_loc, p0_loc, _, patch_sigma = frozen[(a, b)]
