@@ -307,7 +307,7 @@ def _cmd_reconstruct(args) -> int:
             print(f"  {p['a']}-{p['b']}: no point-patch pairs (left out)")
             continue
         print(f"  {p['a']}-{p['b']}: average normal distance {p['average_normal_distance_mm']:.3f} mm, "
-              f"{p['matched_fraction']:.0%} matched")
+              f"{p['matched_fraction']:.0%} of {p['a']}'s points matched, {p['overlap_matched_fraction']:.1%} of the overlap")
     for warning in rep.get("warnings", []):
         print(f"warning: {warning}", file=sys.stderr)
     for arm, why in rep["failed_arms"].items():
