@@ -435,13 +435,11 @@ def least_squares_image(image: np.ndarray) -> tuple:
     and (H, W, 2) float32 central-difference gradients d/dx, d/dy.
     """
     img = np.ascontiguousarray(image, dtype=np.float32)
-    nxt = np.zeros_like(img)
-    nxt[:, :-1] = img[:, 1:]
-    below = np.zeros_like(img)
-    below[:-1] = img[1:]
-    diag = np.zeros_like(img)
-    diag[:-1] = nxt[1:]
-    corners = cv2.merge([img, nxt, below, diag])  # interleaving in OpenCV: numpy's stack along the last axis is slow
+    h, w = img.shape
+    padded = np.zeros((h + 1, w + 1), np.float32)  # zeros beyond the last row and column
+    padded[:h, :w] = img
+    # interleaving in OpenCV from views of one padded copy: numpy's stack along the last axis is slow
+    corners = cv2.merge([padded[:h, :w], padded[:h, 1:], padded[1:, :w], padded[1:, 1:]])
     # central differences (as numpy's gradient inside the image); OpenCV's filter is several times faster
     gradients = cv2.merge([cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REPLICATE),
                            cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REPLICATE)])
