@@ -24,7 +24,7 @@ from .epipolar import rig_centre, subject_depth_bounds
 from .features import local_contrast
 from .formats import Calibration, Capture, FormatError, Rig, load_image
 from .multiview import IntersectionConfig, intersect
-from .parallel import cores
+from .parallel import cores, reuse_freed_images
 from .registration import (ICPatchConfig, Transform, chain_initial, multi_surface_registration, pair_fit,
                            patch_indices, weak_arms)
 from .surface import PointSurface, make_surface, off_surface, small_components, subset
@@ -94,6 +94,7 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     """
     cfg = cfg or ReconstructionConfig()
     t0 = time.perf_counter()
+    reuse_freed_images()  # the stages allocate and free many full-size images (see there)
     ids = arm_cameras(rig, arm_id)
     unusable = {}
     images, cams, used = [], [], []
