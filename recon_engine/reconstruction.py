@@ -12,7 +12,7 @@ from __future__ import annotations
 import multiprocessing
 import queue
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -99,27 +99,33 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     unusable = {}
     images, cams, used = [], [], []
     polygons = (capture.extra or {}).get(ROI_KEY) or {}
-    for cam_id in ids:
+    def usable(cam_id):
+        """(grey image as float32 in 8-bit levels, "") or (None, why it is unusable)."""
         if cam_id not in calibration.cameras:
-            unusable[cam_id] = "not in the calibration"
-            continue
+            return None, "not in the calibration"
         if cam_id not in capture.cameras:
-            unusable[cam_id] = "missing from the capture"
-            continue
+            return None, "missing from the capture"
         try:
             image = load_image(capture, cam_id, rig)
         except FormatError as exc:
-            unusable[cam_id] = f"unreadable: {exc}"
-            continue
+            return None, f"unreadable: {exc}"
         if image.ndim == 3:
             image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
         why = image_problem(image, cfg)
         if why:
-            unusable[cam_id] = why
-            continue
+            return None, why
         if image.dtype == np.uint16:
             image = (image.astype(np.float32) * (255.0 / 65535.0))
-        images.append(image.astype(np.float32))
+        return image.astype(np.float32), ""
+
+    # decoding and checking the images on threads (OpenCV and numpy release the GIL); the order is kept
+    with ThreadPoolExecutor(cores(cfg.tracking.matching.threads)) as pool:
+        loaded = list(pool.map(usable, ids))
+    for cam_id, (image, why) in zip(ids, loaded):
+        if why:
+            unusable[cam_id] = why
+            continue
+        images.append(image)
         cams.append(calibration.cameras[cam_id])
         used.append(cam_id)
     for cam_id, why in unusable.items():
