@@ -32,7 +32,7 @@ def signed(value, digits=1):
 
 @register.filter
 def percent(value):
-    if value is None:
+    if value is None or value == "":  # "": a field an older report does not have
         return "–"
     return f"{100 * float(value):.1f} %"
 

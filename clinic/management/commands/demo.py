@@ -117,7 +117,8 @@ class Command(BaseCommand):
                 continue
             rec = job.reconstruction
             pairs = ", ".join(f"{p['a']}-{p['b']} {p['average_normal_distance_mm']:.3f} mm "
-                              f"({p['matched_fraction']:.0%})" for p in rec.report["registration"]["pairs"]
+                              f"({p.get('overlap_matched_fraction', p['matched_fraction']):.0%} of the overlap)"
+                              for p in rec.report["registration"]["pairs"]
                               if p["average_normal_distance_mm"] is not None)
             ind = rec.indices or {}
             self.say(f"  torso: {rec.points} points, status {rec.status}; registration {pairs}")
