@@ -140,10 +140,11 @@ class PatchIndex:
     """Closest-patch queries on a fixed surface (Open3D raycasting scene)."""
 
     def __init__(self, surface: PointSurface, max_edge_factor: float | None = None,
-                 vertex_normals: np.ndarray | None = None):
+                 vertex_normals: np.ndarray | None = None, rim_of: PatchIndex | None = None):
         if len(surface.faces) == 0:
             raise ValueError("the surface has no patches to register against")
         self.full_surface = surface  # the rim is that of all patches (see rim_tree)
+        self._rim_of = rim_of  # an index of the same surface whose rim this one shares
         if max_edge_factor is not None:
             # long patches are chords far below the curved skin (where the arm sees it obliquely, the TIN
             # stretches): their sagitta biases the normal distances, so only compact patches are used
@@ -178,18 +179,22 @@ class PatchIndex:
     def rim_tree(self):
         """KD-tree of the TIN's rim vertices (on edges of one patch, all patches counted; None if it has none).
         Built on first use: only the multiple registration's ``rim_margin_mm`` needs it."""
+        if self._rim_of is not None:
+            return self._rim_of.rim_tree
         F = self.full_surface.faces.astype(np.int64)
+        n = len(self.full_surface.points)
         E = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
         # each edge as one integer: a 1-D unique is far faster than np.unique(axis=0) on rows
-        key, count = np.unique(E[:, 0] * len(self.full_surface.points) + E[:, 1], return_counts=True)
+        key, count = np.unique(E[:, 0] * n + E[:, 1], return_counts=True)
         once = key[count == 1]
-        n = len(self.full_surface.points)
         rim = np.unique(np.concatenate([once // n, once % n]))
         return cKDTree(self.full_surface.points[rim]) if len(rim) else None
 
     @cached_property
     def vertex_rim_distance(self) -> np.ndarray:
         """Each vertex's distance to the TIN's rim (N,, mm; inf if the TIN has no rim)."""
+        if self._rim_of is not None:
+            return self._rim_of.vertex_rim_distance
         P = self.full_surface.points
         return self.rim_tree.query(P)[0] if self.rim_tree is not None else np.full(len(P), np.inf)
 
@@ -232,8 +237,8 @@ def patch_indices(surfaces: dict, cfg: ICPatchConfig) -> dict:
     out = {}
     for a, s in surfaces.items():
         vn = s.normals if cfg.curved_patches else None
-        out[a] = (PatchIndex(s, None, vn),
-                  PatchIndex(s, cfg.max_patch_edge, vn) if cfg.max_patch_edge is not None else None)
+        full = PatchIndex(s, None, vn)
+        out[a] = (full, PatchIndex(s, cfg.max_patch_edge, vn, rim_of=full) if cfg.max_patch_edge is not None else None)
     return out
 
 
@@ -527,6 +532,9 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
     it = 0
     frozen = {}
     near = {p: {} for p in pairs}
+    # each observed point's distance to its own surface's rim (mm), where the rim rule asks for it
+    rim_distance = {p: indices[p[0]][0].vertex_rim_distance[sample[p]] if cfg.rim_margin_mm is not None else None
+                    for p in pairs}
     weak = set()
     scale_weight = 0.0 if cfg.estimate_scale else 1e12
     s0_prior = 1.0 if cfg.weighted else 0.05  # unit-weight sigma before the first iteration (mm when unweighted)
@@ -542,11 +550,8 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             # every pair's closest-patch queries at once, on threads (Open3D and numpy release the GIL)
             def fresh(p):
                 a, b = p
-                idx_all = sample[p]
-                rim_distance = (indices[a][0].vertex_rim_distance[idx_all] if cfg.rim_margin_mm is not None
-                                else None)
-                return correspondences(surfaces[a].points[idx_all], surfaces[a].normals[idx_all], index[p],
-                                       T[b].inverse().compose(T[a]), dist[p], cfg, near[p], rim_distance)
+                return correspondences(surfaces[a].points[sample[p]], surfaces[a].normals[sample[p]], index[p],
+                                       T[b].inverse().compose(T[a]), dist[p], cfg, near[p], rim_distance[p])
             with ThreadPoolExecutor(cores(cfg.threads)) as pool:
                 frozen.update(zip(pairs, pool.map(fresh, pairs)))
         for (a, b) in pairs:

@@ -117,7 +117,7 @@ class Command(BaseCommand):
                 continue
             rec = job.reconstruction
             pairs = ", ".join(f"{p['a']}-{p['b']} {p['average_normal_distance_mm']:.3f} mm "
-                              f"({p.get('overlap_matched_fraction', p['matched_fraction']):.0%} of the overlap)"
+                              f"({p['overlap_matched_fraction']:.0%} of the overlap)"
                               for p in rec.report["registration"]["pairs"]
                               if p["average_normal_distance_mm"] is not None)
             ind = rec.indices or {}
