@@ -27,7 +27,7 @@ from .multiview import IntersectionConfig, intersect
 from .parallel import cores, reuse_freed_images
 from .registration import (ICPatchConfig, Transform, chain_initial, multi_surface_registration, pair_fit,
                            patch_indices, weak_arms)
-from .surface import PointSurface, make_surface, off_surface, small_components, subset
+from .surface import PointSurface, flank_faces, make_surface, off_surface, small_components, subset
 from .tracking import TrackingConfig, track_images
 
 ROI_KEY = "roi_polygons"  # capture.json: {"A1": [[x, y], ...]} user-drawn regions (px)
@@ -160,9 +160,13 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     cov_n = np.einsum("ni,nij,nj->n", surface.normals, res["cov"][keep], surface.normals)
     surface = replace(surface, data={**surface.data, "sigma_normal_mm": np.sqrt(np.maximum(cov_n, 0)).astype(np.float32)})
     # islands: wrong matches that agree with each other, cut off from the skin by the TIN's edge rules;
-    # they share no patch with the rest, so dropping them leaves the other points' patches and normals as they are
+    # they share no patch with the rest, so dropping them leaves the other points' patches and normals as they are.
+    # The flanks, where the skin turns away from the arm's mean view and its TIN has no patch, are joined to
+    # the skin by patches from the end cameras' views (only for this test: the registration's patches stay the
+    # arm's TIN); without them a third of the skin seen 60-70 deg off its normal was dropped as islands
     kept = np.nonzero(keep)[0]
-    island = small_components(len(kept), surface.faces, cfg.min_island_points)
+    flanks = flank_faces(surface.points, surface.faces, cams)
+    island = small_components(len(kept), np.concatenate([surface.faces, flanks]), cfg.min_island_points)
     reason[kept[island]] = "island off the surface"
     keep = reason == ""
     surface = subset(surface, ~island)

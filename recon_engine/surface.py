@@ -70,6 +70,45 @@ def triangulate(points: np.ndarray, view_R: np.ndarray, eye: np.ndarray, max_edg
     return tri[keep].astype(np.int64)
 
 
+def flank_faces(points: np.ndarray, faces: np.ndarray, cameras, max_slope_deg: float = 80.0) -> np.ndarray:
+    """Patches (F, 3) over the points that the arm's TIN ``faces`` leaves out, from the end cameras' views.
+
+    Where the skin turns more than ``max_slope_deg`` away from the arm's mean
+    view (the torso's flanks), the arm's TIN has no patch, though the arm's
+    end cameras still see the skin obliquely. Triangulated again from the
+    first and the last camera's view (with the points near them, so that they
+    join the skin they continue; long and steep edges removed alike), such
+    points belong to the surface again. Each returned patch holds at least
+    one of the left-out points.
+    """
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, dtype=float)
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if len(faces) == 0 or len(cameras) < 2:
+        return np.zeros((0, 3), dtype=np.int64)
+    a, b, c = points[faces[:, 0]], points[faces[:, 1]], points[faces[:, 2]]
+    edge = float(np.median(np.concatenate([np.linalg.norm(a - b, axis=1), np.linalg.norm(b - c, axis=1)])))
+    max_edge_mm = 4.0 * edge
+    used = np.zeros(len(points), bool)
+    used[faces.ravel()] = True
+    tree = None
+    out = []
+    for cam in (cameras[0], cameras[-1]):
+        lonely = np.nonzero(~used)[0]
+        if len(lonely) == 0:
+            break
+        if tree is None:
+            tree = cKDTree(points)
+        near = tree.query_ball_point(points[lonely], r=max_edge_mm, return_sorted=False)
+        sub = np.unique(np.concatenate([lonely, *[np.asarray(n, dtype=np.int64) for n in near]]))
+        f = sub[triangulate(points[sub], cam.R, cam.C, max_edge_mm, max_slope_deg)]
+        f = f[~used[f].all(axis=1)]
+        used[f.ravel()] = True
+        out.append(f)
+    return np.concatenate(out) if out else np.zeros((0, 3), dtype=np.int64)
+
+
 def vertex_normals(points: np.ndarray, faces: np.ndarray, towards: np.ndarray) -> np.ndarray:
     """Area-weighted vertex normals, each turned to face the point ``towards`` (mm)."""
     n = np.zeros_like(points, dtype=float)
