@@ -27,7 +27,8 @@ from .multiview import IntersectionConfig, intersect
 from .parallel import cores, reuse_freed_images
 from .registration import (ICPatchConfig, Transform, chain_initial, multi_surface_registration, pair_fit,
                            patch_indices, weak_arms)
-from .surface import PointSurface, flank_faces, make_surface, off_surface, small_components, subset
+from .surface import (PointSurface, flank_faces, in_patches, make_surface, off_surface, small_components,
+                      subset)
 from .tracking import TrackingConfig, track_images
 
 ROI_KEY = "roi_polygons"  # capture.json: {"A1": [[x, y], ...]} user-drawn regions (px)
@@ -326,6 +327,8 @@ def register_arms(surfaces: dict, arm_reports: dict, failed: dict, rig: Rig, cal
     order = [a.id for a in rig.arms if a.id in surfaces]
     t0 = time.perf_counter() - arms_seconds
     t1 = time.perf_counter()
+    fused = surfaces  # every point goes into the torso; the registration sees the points in the arms' patches
+    surfaces = {a: in_patches(s) for a, s in surfaces.items()}
     T, pairwise, closing = ({reference: Transform.identity()}, [], None)
     multi = {"transforms": T, "pairs": [], "sigmas": {}, "iterations": 0, "converged": True}
     problems, warnings, weak = [], [], {}
@@ -400,9 +403,9 @@ def register_arms(surfaces: dict, arm_reports: dict, failed: dict, rig: Rig, cal
     for warning in warnings:
         progress(f"registration warning: {warning}")
     order = [a for a in order if a in T]
-    pts = np.concatenate([T[a].apply(surfaces[a].points) for a in order])
-    nrm = np.concatenate([T[a].rotate(surfaces[a].normals) for a in order])
-    sig = np.concatenate([surfaces[a].data["sigma_mm"] * T[a].scale for a in order])
+    pts = np.concatenate([T[a].apply(fused[a].points) for a in order])
+    nrm = np.concatenate([T[a].rotate(fused[a].normals) for a in order])
+    sig = np.concatenate([fused[a].data["sigma_mm"] * T[a].scale for a in order])
     spacing = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1]))
     P, N, S, count = fuse_points(pts, nrm, sig, cfg.fuse_cell_fraction * spacing)
     t3 = time.perf_counter()
@@ -432,4 +435,4 @@ def register_arms(surfaces: dict, arm_reports: dict, failed: dict, rig: Rig, cal
         "seconds": {"arms": t1 - t0, "registration": t2 - t1, "fusion": t3 - t2, "mesh": t4 - t3, "total": t4 - t0},
     }
     return {"points": P, "normals": N, "sigma_mm": S, "count": count, "mesh": mesh, "report": report,
-            "surfaces": surfaces, "transforms": T}
+            "surfaces": fused, "transforms": T}

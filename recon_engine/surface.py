@@ -190,6 +190,18 @@ def subset(surface: PointSurface, keep: np.ndarray) -> PointSurface:
                         {k: np.asarray(v)[keep] for k, v in surface.data.items()}, surface.view_direction)
 
 
+def in_patches(surface: PointSurface) -> PointSurface:
+    """The surface without its points in no patch (the flanks' points, see :func:`flank_faces`).
+
+    Registration pairs a surface's points with its neighbour's patches; a point
+    the arm's TIN leaves out was seen only obliquely by the arm's cameras and
+    is left out of the registration too (not of the fused torso).
+    """
+    keep = np.zeros(len(surface.points), bool)
+    keep[np.asarray(surface.faces, dtype=np.int64).ravel()] = True
+    return surface if keep.all() else subset(surface, keep)
+
+
 def make_surface(points, cameras, data=None, max_edge_mm=None, max_slope_deg=80.0) -> PointSurface:
     """The TIN surface of an arm's points seen by ``cameras``."""
     points = np.asarray(points, dtype=float)
