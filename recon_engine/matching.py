@@ -65,8 +65,9 @@ class MatchingConfig:
     # stage 3, region growing from the matched points (see match_points)
     # rounds (at most; growing stops when a round matches nothing new): each one reaches a little further into
     # steep skin. Paper scale, arm D, coverage / time of the arm: 4 rounds 84.0% / 30.6 s; 12: 85.9% / 35.2 s;
-    # 40: 86.2% / 39.2 s. But the steep skin the later rounds reach pulls the registration off: paper scale,
-    # 12 rounds, arms' mean position error 0.0196 mm (0.0106 mm with 4); tiny preset, torso RMS 1.43 mm (0.67)
+    # 40: 86.2% / 39.2 s. But the steep skin the later rounds reach pulls the registration off: tiny preset,
+    # torso RMS 1.43 mm with 12 rounds (0.67 mm with 4); paper scale, with 12 rounds and growing's least-squares
+    # window at 11 px, the arms' mean position error 0.0196 mm (0.0106 mm before)
     grow_passes: int = 4
     grow_radius_px: float = 12.0  # matched points this close predict an unmatched point's disparity plane
     grow_min_neighbours: int = 4
@@ -300,7 +301,7 @@ def _verify(left, right, xy, r, scale, shear, cfg, max_sigma_px=None, prepared=N
         idx = np.nonzero(valid)[0]
         if prepared is None:
             prepared = least_squares_image(right)
-        lsm_window = max(cfg.lsm_window, window)  # growing's larger window holds more of the squeezed pattern
+        lsm_window = cfg.lsm_window or window
         lsm = _chunked(lambda **a: least_squares_refine(left, right, a["xy_left"], a["xy_right"], window=lsm_window,
                                                         initial_scale=a["scale"], initial_shear=a["shear"],
                                                         prepared=prepared),
