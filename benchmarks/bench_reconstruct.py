@@ -40,6 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from recon_engine.formats import read_calibration, read_capture, read_rig  # noqa: E402
 from recon_engine.reconstruction import TorsoConfig, reconstruct_torso, register_arms  # noqa: E402
 from recon_engine.registration import ICPatchConfig, Transform, pair_fit  # noqa: E402
+from recon_engine.surface import in_patches  # noqa: E402
 
 from bench_reconstruct_arm import Truth  # noqa: E402
 from bench_simulate import machine  # noqa: E402
@@ -150,7 +151,8 @@ def run_capture(args, capture: str) -> dict:
     disp = json.loads((S / "truth" / capture / "truth.json").read_text())["arm_displacements"]
     D = {a: Transform(1.0, np.array(v["R"]), np.array(v["t"])) for a, v in disp.items()}
     out["displacement_error"] = {"ours": displacement_errors(res["transforms"], D, truth.centroid)}
-    surfaces = res["surfaces"]
+    # the peers register what ours registers: the points in the arms' patches (the flanks' points are fused only)
+    surfaces = {a: in_patches(s) for a, s in res["surfaces"].items()}
     order = [a.id for a in rig.arms if a.id in surfaces]
     for name, fn in (("open3d_icp_pairwise", open3d_pairwise), ("open3d_multiway", open3d_multiway)):
         t1 = time.perf_counter()
