@@ -39,6 +39,10 @@ class ReconstructionConfig:
     subject_radius_mm: float = 400.0  # the subject lies within this of the rig centre (sets the disparity range)
     max_sigma_mm: float = 1.0  # points less precise than this (1-sigma, largest axis) are dropped
     min_island_points: int = 10  # connected pieces of the surface with fewer points are dropped
+    # the flanks' points (skin turned more than 80 deg from the arm's mean view, in no patch of its TIN) joined to
+    # the skin by the end cameras' patches instead of dropped as islands: paper scale, coverage +1.1 to +2.5
+    # points. Off by default: on the tiny preset the clinic's analysis then no longer finds the back's midline
+    keep_flanks: bool = False
     min_contrast: float = 3.0  # grey levels: an image with less standard deviation is blank
     max_saturated: float = 0.2  # fraction of pixels at 255 above which an image is overexposed
     min_sharpness: float = 0.25  # high-frequency share of the pattern's contrast; below it, out of focus
@@ -162,11 +166,11 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     surface = replace(surface, data={**surface.data, "sigma_normal_mm": np.sqrt(np.maximum(cov_n, 0)).astype(np.float32)})
     # islands: wrong matches that agree with each other, cut off from the skin by the TIN's edge rules;
     # they share no patch with the rest, so dropping them leaves the other points' patches and normals as they are.
-    # The flanks, where the skin turns away from the arm's mean view and its TIN has no patch, are joined to
+    # With keep_flanks, the flanks, where the skin turns away from the arm's mean view and its TIN has no patch, are joined to
     # the skin by patches from the end cameras' views (only for this test: the registration's patches stay the
     # arm's TIN); without them a third of the skin seen 60-70 deg off its normal was dropped as islands
     kept = np.nonzero(keep)[0]
-    flanks = flank_faces(surface.points, surface.faces, cams)
+    flanks = flank_faces(surface.points, surface.faces, cams) if cfg.keep_flanks else np.zeros((0, 3), np.int64)
     island = small_components(len(kept), np.concatenate([surface.faces, flanks]), cfg.min_island_points)
     # the patches of the TIN's own islands that the flanks joined to the skin are dropped: such steep skin pulled
     # the registration off (surface.in_patches leaves patchless points out of it); their points stay in the surface
