@@ -73,8 +73,8 @@ class MatchingConfig:
     grow_min_neighbours: int = 4
     grow_search_px: int = 3  # columns searched either side of the predicted disparity
     grow_scale_range: tuple = (0.3, 3.0)  # predicted stretches outside this are not tried
-    # least-squares precision a grown match needs (x shift, 1-sigma). Paper scale, arm C: 0.1 px: coverage 85.1%,
-    # RMS 0.038 mm; 0.25 px: 86.6%, 0.041 mm, but on the tiny preset (2 mm pixels) a wrong match 5.8 mm off
+    # least-squares precision a grown match needs (x shift, 1-sigma). Paper scale, arm C, 40 rounds, flanks kept:
+    # 0.1 px: coverage 85.1%, RMS 0.038 mm; 0.25 px: 86.6%, 0.041 mm, but on the tiny preset (2 mm pixels) a wrong match 5.8 mm off
     # the skin passes every later test
     grow_max_lsm_sigma_px: float = 0.1
     # window of the grown matches (px): the stretch and shear are predicted, so a larger window no longer loses

@@ -166,9 +166,9 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     surface = replace(surface, data={**surface.data, "sigma_normal_mm": np.sqrt(np.maximum(cov_n, 0)).astype(np.float32)})
     # islands: wrong matches that agree with each other, cut off from the skin by the TIN's edge rules;
     # they share no patch with the rest, so dropping them leaves the other points' patches and normals as they are.
-    # With keep_flanks, the flanks, where the skin turns away from the arm's mean view and its TIN has no patch, are joined to
-    # the skin by patches from the end cameras' views (only for this test: the registration's patches stay the
-    # arm's TIN); without them a third of the skin seen 60-70 deg off its normal was dropped as islands
+    # With keep_flanks, the flanks (where the skin turns away from the arm's mean view and its TIN has no patch)
+    # are joined to the skin by patches from the end cameras' views, only for this test: the registration's
+    # patches stay the arm's TIN. Without them a third of the skin seen 60-70 deg off its normal is dropped
     kept = np.nonzero(keep)[0]
     flanks = flank_faces(surface.points, surface.faces, cams) if cfg.keep_flanks else np.zeros((0, 3), np.int64)
     island = small_components(len(kept), np.concatenate([surface.faces, flanks]), cfg.min_island_points)
