@@ -170,12 +170,14 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     # are joined to the skin by patches from the end cameras' views, only for this test: the registration's
     # patches stay the arm's TIN. Without them a third of the skin seen 60-70 deg off its normal is dropped
     kept = np.nonzero(keep)[0]
-    flanks = flank_faces(surface.points, surface.faces, cams) if cfg.keep_flanks else np.zeros((0, 3), np.int64)
-    island = small_components(len(kept), np.concatenate([surface.faces, flanks]), cfg.min_island_points)
-    # the patches of the TIN's own islands that the flanks joined to the skin are dropped: such steep skin pulled
-    # the registration off (surface.in_patches leaves patchless points out of it); their points stay in the surface
-    small = small_components(len(kept), surface.faces, cfg.min_island_points)
-    surface = replace(surface, faces=surface.faces[~small[surface.faces].any(axis=1)])
+    island = small_components(len(kept), surface.faces, cfg.min_island_points)
+    if cfg.keep_flanks:
+        small = island
+        flanks = flank_faces(surface.points, surface.faces, cams)
+        island = small_components(len(kept), np.concatenate([surface.faces, flanks]), cfg.min_island_points)
+        # the patches of the TIN's own islands that the flanks joined to the skin are dropped: such steep skin
+        # pulled the registration off (surface.in_patches leaves patchless points out of it); their points stay
+        surface = replace(surface, faces=surface.faces[~small[surface.faces].any(axis=1)])
     reason[kept[island]] = "island off the surface"
     keep = reason == ""
     surface = subset(surface, ~island)
