@@ -158,6 +158,21 @@ def point_spacing(points: np.ndarray, sample: int = 5000, seed: int = 0) -> floa
     return float(np.median(d[:, 1]))
 
 
+def sampling_spacing(points: np.ndarray, k: int = 16, sample: int = 5000, seed: int = 0) -> float:
+    """The surface's sampling spacing (mm): the side of the area each point holds, ``sqrt(pi r_k^2 / k)``.
+
+    ``r_k`` is the median distance to the k-th nearest neighbour. Unlike
+    :func:`point_spacing` it sees clustered samples (matched features bunch on
+    the pattern's blobs, with gaps between) as sparse as they are: a grid of
+    cells this size is mostly filled.
+    """
+    rng = np.random.default_rng(seed)
+    k = max(1, min(k, len(points) - 1))
+    idx = rng.choice(len(points), min(sample, len(points)), replace=False)
+    d, _ = cKDTree(points).query(points[idx], k=k + 1)
+    return float(np.sqrt(np.pi * np.median(d[:, k]) ** 2 / k))
+
+
 class PlaneIndex:
     """Signed normal distances to a fixed torso through the mean planes of its nearest points."""
 

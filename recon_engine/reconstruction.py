@@ -40,9 +40,8 @@ class ReconstructionConfig:
     max_sigma_mm: float = 1.0  # points less precise than this (1-sigma, largest axis) are dropped
     min_island_points: int = 10  # connected pieces of the surface with fewer points are dropped
     # the flanks' points (skin turned more than 80 deg from the arm's mean view, in no patch of its TIN) joined to
-    # the skin by the end cameras' patches instead of dropped as islands: paper scale, coverage +1.1 to +2.5
-    # points. Off by default: on the tiny preset the clinic's analysis then no longer finds the back's midline
-    keep_flanks: bool = False
+    # the skin by the end cameras' patches instead of dropped as islands: paper scale, coverage +1.1 to +2.5 points
+    keep_flanks: bool = True
     min_contrast: float = 3.0  # grey levels: an image with less standard deviation is blank
     max_saturated: float = 0.2  # fraction of pixels at 255 above which an image is overexposed
     min_sharpness: float = 0.25  # high-frequency share of the pattern's contrast; below it, out of focus
