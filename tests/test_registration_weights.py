@@ -1,6 +1,7 @@
 """The multiple registration weighted by the surfaces' precision, and the scale's a priori sigma."""
 
 from dataclasses import replace
+from functools import lru_cache
 
 import numpy as np
 
@@ -26,6 +27,19 @@ def _with_imprecise_rims(surfaces, truth, bias_mm=0.15, rim_deg=50.0):
     return out
 
 
+@lru_cache(maxsize=None)
+def _surfaces(biased=False):
+    """The four arms' synthetic surfaces (with imprecise, biased rims if ``biased``) and the truth."""
+    surfaces, truth = _four_arm_surfaces(smooth_c=False, noise=0.02)
+    return (_with_imprecise_rims(surfaces, truth) if biased else surfaces), truth
+
+
+@lru_cache(maxsize=None)
+def _registered(cfg, biased=False):
+    """One registration per configuration, shared by the tests (each takes seconds; the tests only read it)."""
+    return _register(_surfaces(biased)[0], cfg)
+
+
 def _position_errors(res, truth, surfaces):
     """RMS distance (mm) between where the registration and the truth put each arm's points."""
     out = {}
@@ -36,10 +50,10 @@ def _position_errors(res, truth, surfaces):
 
 
 def test_weighting_by_precision_discounts_the_imprecise_rims():
-    surfaces, truth = _four_arm_surfaces(smooth_c=False, noise=0.02)
-    biased = _with_imprecise_rims(surfaces, truth)
-    plain = _position_errors(_register(biased, ICPatchConfig(max_patch_edge=None)), truth, biased)
-    weighted = _position_errors(_register(biased, ICPatchConfig(max_patch_edge=None, weighted=True)), truth, biased)
+    biased, truth = _surfaces(biased=True)
+    plain = _position_errors(_registered(ICPatchConfig(max_patch_edge=None), biased=True), truth, biased)
+    weighted = _position_errors(_registered(ICPatchConfig(max_patch_edge=None, weighted=True), biased=True), truth,
+                                biased)
     # the rims' bias moves the unweighted arms by 0.4-0.6 mm (0.10-0.14 mm without it: these sparse synthetic
     # surfaces hold the arms loosely); weighted, the precise cores hold them about twice as well
     assert min(plain.values()) > 0.3
@@ -47,18 +61,15 @@ def test_weighting_by_precision_discounts_the_imprecise_rims():
 
 
 def test_it_runs_unweighted_on_surfaces_without_normal_precision():
-    surfaces, truth = _four_arm_surfaces(smooth_c=False, noise=0.02)
-    res = _register(surfaces, ICPatchConfig(weighted=True))  # no sigma_normal_mm: every weight is 1
-    ref = _register(surfaces, ICPatchConfig())
+    res = _registered(ICPatchConfig(weighted=True))  # no sigma_normal_mm: every weight is 1
+    ref = _registered(ICPatchConfig())
     for a in ARMS[1:]:
         assert np.allclose(res["transforms"][a].t, ref["transforms"][a].t, atol=1e-9)
 
 
 def test_a_scale_prior_holds_each_arms_scale_near_one():
-    surfaces, truth = _four_arm_surfaces(smooth_c=False, noise=0.02)
-    biased = _with_imprecise_rims(surfaces, truth)
-    free = _register(biased, ICPatchConfig(max_patch_edge=None))
-    held = _register(biased, replace(ICPatchConfig(max_patch_edge=None), scale_sigma=1e-6))
+    free = _registered(ICPatchConfig(max_patch_edge=None), biased=True)
+    held = _registered(replace(ICPatchConfig(max_patch_edge=None), scale_sigma=1e-6), biased=True)
     for a in ARMS[1:]:
         assert abs(held["transforms"][a].scale - 1.0) < 2e-6
     # free, the rims' outward bias is partly taken up as scale
@@ -66,17 +77,15 @@ def test_a_scale_prior_holds_each_arms_scale_near_one():
 
 
 def test_a_negligible_pair_error_leaves_the_adjustment_as_it_was():
-    surfaces, truth = _four_arm_surfaces(smooth_c=False, noise=0.02)
-    plain = _register(surfaces, ICPatchConfig())
-    tiny = _register(surfaces, ICPatchConfig(pair_sigma=(1e-12, 1e-12, 1e-10)))
+    plain = _registered(ICPatchConfig())
+    tiny = _registered(ICPatchConfig(pair_sigma=(1e-12, 1e-12, 1e-10)))
     for a in ARMS[1:]:
         assert np.allclose(tiny["transforms"][a].t, plain["transforms"][a].t, atol=1e-4)
 
 
 def test_each_pairs_systematic_error_shows_in_the_arms_sigmas():
-    surfaces, truth = _four_arm_surfaces(smooth_c=False, noise=0.02)
-    plain = _register(surfaces, ICPatchConfig())["report"]["registration"]["sigmas"]
-    held = _register(surfaces, ICPatchConfig(pair_sigma=(2e-5, 3.5e-5, 0.01)))["report"]["registration"]["sigmas"]
+    plain = _registered(ICPatchConfig())["report"]["registration"]["sigmas"]
+    held = _registered(ICPatchConfig(pair_sigma=(2e-5, 3.5e-5, 0.01)))["report"]["registration"]["sigmas"]
     for a in ARMS[1:]:
         # arm C hangs on A through two pairs each side: its translation is no surer than a pair's 0.01 mm
         assert held[a]["tx_mm"] > plain[a]["tx_mm"]
@@ -96,9 +105,8 @@ def test_the_point_normal_matrix_sums_each_points_displacement_jacobian():
 
 
 def test_a_stiff_pair_model_leaves_the_adjustment_as_it_was():
-    surfaces, truth = _four_arm_surfaces(smooth_c=False, noise=0.02)
-    plain = _register(surfaces, ICPatchConfig())
-    stiff = _register(surfaces, ICPatchConfig(pair_stiffness=1e-14))
+    plain = _registered(ICPatchConfig())
+    stiff = _registered(ICPatchConfig(pair_stiffness=1e-14))
     for a in ARMS[1:]:
         assert np.allclose(stiff["transforms"][a].t, plain["transforms"][a].t, atol=1e-4)
 
@@ -106,7 +114,7 @@ def test_a_stiff_pair_model_leaves_the_adjustment_as_it_was():
 def test_pairs_at_either_surfaces_rim_are_left_out():
     from recon_engine.registration import PatchIndex, correspondences
 
-    surfaces, truth = _four_arm_surfaces(smooth_c=False, noise=0.02)
+    surfaces, truth = _surfaces()
     a, b = surfaces["A"], surfaces["B"]
     fixed, own = PatchIndex(b), PatchIndex(a)
     rel = truth["B"].inverse().compose(truth["A"])
@@ -119,9 +127,8 @@ def test_pairs_at_either_surfaces_rim_are_left_out():
 
 
 def test_table_1_counts_the_whole_overlap_whichever_pairs_the_adjustment_observed():
-    surfaces, _ = _four_arm_surfaces(smooth_c=False, noise=0.02)
-    plain = _register(surfaces, ICPatchConfig(rim_margin_mm=None))["report"]["registration"]["pairs"]
-    rim = _register(surfaces, ICPatchConfig(rim_margin_mm=15.0))["report"]["registration"]["pairs"]
+    plain = _registered(ICPatchConfig(rim_margin_mm=None))["report"]["registration"]["pairs"]
+    rim = _registered(ICPatchConfig(rim_margin_mm=15.0))["report"]["registration"]["pairs"]
     for p, q in zip(plain, rim):
         assert (p["a"], p["b"]) == (q["a"], q["b"])
         # the adjustment left the rim pairs out...
