@@ -147,12 +147,13 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
     """
     cfg = cfg or AnalysisConfig()
     ic = cfg.indices
-    from .torso import point_spacing, sampling_spacing
+    from .torso import spacings
 
     # clustered samples (a sparse reconstruction's features bunch on the pattern's blobs) are sparser than
     # their nearest-neighbour distance says: with cells that small the depth map was mostly holes and the
     # midline was found on a few rows only (tiny preset: VP 48 mm low, SP 300 mm high)
-    spacing = max(point_spacing(torso.points), 0.9 * sampling_spacing(torso.points))
+    nearest, sampling = spacings(torso.points)
+    spacing = max(nearest, 0.9 * sampling)
     if ic.smooth_mm < 1.5 * spacing or ic.grid_mm < 1.0 * spacing:
         # a sparse cloud (a reduced rig): cells and smoothing grow with the point spacing
         ic = replace(ic, grid_mm=max(ic.grid_mm, 1.0 * spacing), smooth_mm=max(ic.smooth_mm, 1.5 * spacing),

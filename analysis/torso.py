@@ -150,27 +150,31 @@ def orient_outward(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return n
 
 
-def point_spacing(points: np.ndarray, sample: int = 5000, seed: int = 0) -> float:
-    """Median distance (mm) from a point to its nearest neighbour."""
-    rng = np.random.default_rng(seed)
-    idx = rng.choice(len(points), min(sample, len(points)), replace=False)
-    d, _ = cKDTree(points).query(points[idx], k=2)
-    return float(np.median(d[:, 1]))
+def spacings(points: np.ndarray, k: int = 16, sample: int = 5000, seed: int = 0) -> tuple[float, float]:
+    """The nearest-neighbour spacing and the sampling spacing (mm), from one neighbour query of a sample.
 
-
-def sampling_spacing(points: np.ndarray, k: int = 16, sample: int = 5000, seed: int = 0) -> float:
-    """The surface's sampling spacing (mm): the side of the area each point holds, ``sqrt(pi r_k^2 / k)``.
-
-    ``r_k`` is the median distance to the k-th nearest neighbour. Unlike
-    :func:`point_spacing` it sees clustered samples (matched features bunch on
-    the pattern's blobs, with gaps between) as sparse as they are: a grid of
-    cells this size is mostly filled.
+    The nearest-neighbour spacing is the median distance to the nearest
+    point. The sampling spacing is the side of the area each point holds,
+    ``sqrt(pi r_k^2 / k)`` with ``r_k`` the median distance to the k-th
+    nearest neighbour: it sees clustered samples (matched features bunch on
+    the pattern's blobs, with gaps between) as sparse as they are, so a grid
+    of cells this size is mostly filled.
     """
     rng = np.random.default_rng(seed)
     k = max(1, min(k, len(points) - 1))
     idx = rng.choice(len(points), min(sample, len(points)), replace=False)
     d, _ = cKDTree(points).query(points[idx], k=k + 1)
-    return float(np.sqrt(np.pi * np.median(d[:, k]) ** 2 / k))
+    return float(np.median(d[:, 1])), float(np.sqrt(np.pi * np.median(d[:, k]) ** 2 / k))
+
+
+def point_spacing(points: np.ndarray, sample: int = 5000, seed: int = 0) -> float:
+    """Median distance (mm) from a point to its nearest neighbour."""
+    return spacings(points, 1, sample, seed)[0]
+
+
+def sampling_spacing(points: np.ndarray, k: int = 16, sample: int = 5000, seed: int = 0) -> float:
+    """The surface's sampling spacing (mm): the side of the area each point holds (see :func:`spacings`)."""
+    return spacings(points, k, sample, seed)[1]
 
 
 class PlaneIndex:
