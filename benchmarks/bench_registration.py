@@ -42,6 +42,7 @@ VARIANTS = {
     "ours": {},
     "ours_weighted": {"weighted": True},
     "ours_rigid": {"estimate_scale": False},
+    "ours_free_scale": {"scale_sigma": None},
     "ours_weighted_rigid": {"weighted": True, "estimate_scale": False},
     "ours_scale_sigma_1e-4": {"scale_sigma": 1e-4},
     "ours_scale_sigma_2e-5": {"scale_sigma": 2e-5},
@@ -64,7 +65,7 @@ VARIANTS = {
     "ours_rim_margin_3": {"rim_margin_mm": 3.0},
     "ours_rim_margin_7": {"rim_margin_mm": 7.0},
 }
-DEFAULT_VARIANTS = ["ours", "ours_no_rim_margin", "ours_rigid", "ours_scale_sigma_2e-5"]
+DEFAULT_VARIANTS = ["ours", "ours_free_scale", "ours_rigid", "ours_scale_sigma_1e-4"]
 
 
 def icpatch_edges(surfaces, order, cfg):

@@ -456,27 +456,27 @@ def least_squares_image(image: np.ndarray) -> tuple:
     return corners, gradients
 
 
-def _sample_with_gradients(prepared: tuple, x: np.ndarray, y: np.ndarray):
-    """Exact bilinear values and interpolated gradients (float32, shape of ``x``) of ``least_squares_image`` output.
+def _sample_windows(corners: np.ndarray, pixel: np.ndarray, local_x: np.ndarray, local_y: np.ndarray) -> np.ndarray:
+    """Exact bilinear values (float32) of ``least_squares_image`` output at ``pixel + local`` positions.
 
-    The four corners come from one nearest-pixel remap (fast, in OpenCV) and
-    are weighted here with the exact fractions: OpenCV's bilinear remap rounds
-    positions to 1/32 px, too coarse for least-squares matching, which
-    resolves about 1/1000 px. The gradients, only the Jacobian, take it.
+    ``pixel`` (N, 2) are whole pixels (x, y), ``local_x``, ``local_y`` (N, M)
+    float32 offsets from them (a window's positions, a few px): split so
+    that float32 keeps the fractions to 1e-6 px. The four corners come from
+    one nearest-pixel remap (fast, in OpenCV) and are weighted here with the
+    exact fractions: OpenCV's bilinear remap rounds positions to 1/32 px, too
+    coarse for least-squares matching, which resolves about 1/1000 px.
     """
-    corners, gradients = prepared
     h, w = corners.shape[:2]
-    x = np.asarray(x, dtype=float)
-    y = np.asarray(y, dtype=float)
-    x0, y0 = np.floor(x), np.floor(y)
-    fx, fy = (x - x0).astype(np.float32), (y - y0).astype(np.float32)
+    x0, y0 = np.floor(local_x), np.floor(local_y)
+    fx, fy = local_x - x0, local_y - y0
+    x0 += pixel[:, 0, None].astype(np.float32)
+    y0 += pixel[:, 1, None].astype(np.float32)
     c = sample_bilinear(corners, x0, y0, interpolation=cv2.INTER_NEAREST)
     top = c[..., 0] + fx * (c[..., 1] - c[..., 0])
     bottom = c[..., 2] + fx * (c[..., 3] - c[..., 2])
     value = top + fy * (bottom - top)
     value[(x0 < 0) | (y0 < 0) | (x0 >= w - 1) | (y0 >= h - 1)] = 0
-    g = sample_bilinear(gradients, x, y)
-    return value, g[..., 0], g[..., 1]
+    return value
 
 
 def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, xy_right: np.ndarray,
@@ -485,86 +485,124 @@ def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarra
     """Adaptive least-squares matching (Gruen 1985) of windows already matched to about a pixel.
 
     The right window is an affine image of the left one along the row
-    (``x' = x + a0 + a1·dx + a2·dy``, ``y' = y + b0 (+ b1·dx + b2·dy)``)
-    with a radiometric gain and offset; the affine terms absorb the
+    (``x' = x + a0 + (s - 1)·dx + t·dy``, ``y' = y + b0``) with a
+    radiometric gain and offset; the stretch ``s`` and shear ``t`` absorb the
     different foreshortening of a surface patch in the two images, which
-    biases a plain correlation peak. All points are solved at once
-    (Gauss–Newton, batched 8×8 normal equations).
+    biases a plain correlation peak. ``initial_scale`` and ``initial_shear``
+    start ``s`` and ``t``.
 
-    Returns ``{"xy": (N, 2) refined right points, "sigma": (N,) px standard
-    deviation of the x shift, "rho": (N,) final correlation, "converged": (N,) bool}``.
+    Solved in the inverse-compositional form (Baker & Matthews 2004): the
+    Jacobian is the left window's (the template's) gradient, so the normal
+    equations are formed and inverted once per point, and each iteration
+    only samples the right window; the warp is updated by composing it with
+    the inverse of the increment. The gain and offset are projected out of
+    the geometric parameters (the Schur complement of the full normal
+    equations). The x shift's precision is the forward adjustment's, from
+    the right window's gradients at the solution. All points are solved at
+    once, vectorized; about 2.5x faster than the forward-additive form
+    (a new Jacobian and normal equations at every iteration) that it replaced.
+
+    ``prepared`` is ``least_squares_image(right)``: pass it in when refining
+    several batches on one image.
+
+    Returns ``{"xy": (N, 2) refined right points (px), "sigma": (N,) px
+    standard deviation of the x shift, "rho": (N,) final correlation,
+    "converged": (N,) bool}``.
     """
     h = window // 2
     n = len(xy_left)
-    off = np.arange(-h, h + 1, dtype=float)
-    # the window's pixel offsets (window², the same for every point)
-    ex = np.tile(off, window)
+    m = window * window
+    off = np.arange(-h, h + 1, dtype=np.float32)
+    ex = np.tile(off, window)  # the window's pixel offsets (row by row)
     ey = np.repeat(off, window)
-    L = sample(left, xy_left[:, 0, None] + ex, xy_left[:, 1, None] + ey)
-    # the right image laid out for sampling with its gradients (least_squares_image): pass it in when refining
-    # several batches on one image
-    prepared = prepared if prepared is not None else least_squares_image(right)
-    # parameters: a0 a1 a2 b0 b1 b2 gain offset
-    p = np.zeros((n, 8))
-    p[:, 1] = np.asarray(initial_scale, dtype=float) - 1.0
-    p[:, 2] = np.asarray(initial_shear, dtype=float)
-    start = p[:, :3].copy()
-    p[:, 6] = 1.0
-    base = np.asarray(xy_right, dtype=float).copy()
-    ex32, ey32 = ex.astype(np.float32), ey.astype(np.float32)
-    active = np.ones(n, bool)
-    free = [0, 1, 2, 3, 6, 7] if shift_y else [0, 1, 2, 6, 7]
-    k = len(free)
-    # each point's normal equations, right window and residuals at its last iteration
-    N_all = np.zeros((n, k, k))
-    R_all = np.zeros((n, window * window), np.float32)
-    r_all = np.zeros((n, window * window), np.float32)
-    running = np.arange(n)
+    # the template and its gradients: central differences of samples one pixel wider, which equal the bilinear
+    # interpolation of the image's central differences at the same fractions
+    wide = np.arange(-h - 1, h + 2, dtype=float)
+    xy_left = np.asarray(xy_left, dtype=float)
+    T = sample(left, xy_left[:, 0, None, None] + wide[None, None, :], xy_left[:, 1, None, None] + wide[None, :, None])
+    L = np.ascontiguousarray(T[:, 1:-1, 1:-1]).reshape(n, m)
+    Lx = (0.5 * (T[:, 1:-1, 2:] - T[:, 1:-1, :-2])).reshape(n, m)
+    Ly = (0.5 * (T[:, 2:, 1:-1] - T[:, :-2, 1:-1])).reshape(n, m)
+    # the steepest-descent images of the parameters (x shift, stretch, shear, y shift) at the identity warp
+    sd = np.stack([Lx, Lx * ex, Lx * ey] + ([Ly] if shift_y else []), axis=1)  # (n, k, m)
+    k = sd.shape[1]
+    # project out the radiometric offset (the mean) and gain (the template itself)
+    Lc = L - L.mean(axis=1, keepdims=True)
+    Lc2 = np.maximum(np.sum(Lc * Lc, axis=1), 1e-12)
+    sd -= sd.mean(axis=2, keepdims=True)
+    sd -= (np.einsum("nkm,nm->nk", sd, Lc) / Lc2[:, None])[..., None] * Lc[:, None, :]
+    N = np.einsum("nkm,njm->nkj", sd, sd).astype(float)
+    N += np.eye(k)[None] * 1e-9 * np.trace(N, axis1=1, axis2=2)[:, None, None]
+    ok = np.abs(np.linalg.det(N)) > 0  # a flat template has no geometry to fit
+    Ninv = np.zeros_like(N)
+    Ninv[ok] = np.linalg.inv(N[ok])
+    step_of = (Ninv.astype(np.float32) @ sd)  # (n, k, m): increment = gain · step_of @ right window
+    corners_gradients = prepared if prepared is not None else least_squares_image(right)
+    corners = corners_gradients[0]
+    base = np.asarray(xy_right, dtype=float)
+    pixel = np.floor(base)
+    frac = base - pixel
+    # the warp from window offsets to right-image offsets from ``base``: x' = a0 + s·dx + t·dy, y' = b0 + dy
+    s = np.broadcast_to(np.asarray(initial_scale, dtype=float), (n,)).copy()
+    t = np.broadcast_to(np.asarray(initial_shear, dtype=float), (n,)).copy()
+    s_start, t_start = s.copy(), t.copy()
+    a0, b0 = np.zeros(n), np.zeros(n)
+    active = ok.copy()
+    R_all = np.zeros((n, m), np.float32)  # each point's right window at its last iteration
+    running = np.nonzero(ok)[0]
     for it in range(iterations):
         if len(running) == 0:
             break
-        q = p[running]
-        x = base[running, 0, None] + ex + q[:, 0, None] + q[:, 1, None] * ex + q[:, 2, None] * ey
-        y = base[running, 1, None] + ey + q[:, 3, None] + q[:, 4, None] * ex + q[:, 5, None] * ey
-        Rv, gx, gy = _sample_with_gradients(prepared, x, y)
-        gain = q[:, 6, None].astype(np.float32)
-        gx *= gain
-        gy *= gain
-        r = L[running] - (gain * Rv + q[:, 7, None].astype(np.float32))
-        # the transposed Jacobian (points, parameters, pixels): each row written contiguously
-        cols = {0: gx, 1: gx * ex32, 2: gx * ey32, 3: gy, 4: gy * ex32, 5: gy * ey32, 6: Rv, 7: 1.0}
-        Jt = np.empty((len(running), k, Rv.shape[1]), np.float32)
-        for j, c in enumerate(free):
-            Jt[:, j, :] = cols[c]
-        N = (Jt @ Jt.transpose(0, 2, 1)).astype(float)
-        b = (Jt @ r[..., None])[..., 0].astype(float)
-        N += np.eye(k)[None] * 1e-9 * np.trace(N, axis1=1, axis2=2)[:, None, None]
-        ok = np.abs(np.linalg.det(N)) > 0
-        step = np.zeros((len(running), k))
-        step[ok] = np.linalg.solve(N[ok], b[ok][..., None])[..., 0]
-        p[np.ix_(running, free)] += step
+        lx = ((frac[running, 0] + a0[running]).astype(np.float32)[:, None] + s[running, None].astype(np.float32) * ex
+              + t[running, None].astype(np.float32) * ey)
+        ly = (frac[running, 1] + b0[running]).astype(np.float32)[:, None] + ey
+        Rv = _sample_windows(corners, pixel[running], lx, ly)
+        Rc = Rv - Rv.mean(axis=1, keepdims=True)
+        gain = np.sum(Rc * Lc[running], axis=1) / np.maximum(np.sum(Rc * Rc, axis=1), 1e-12)
+        # the projected steepest-descent images are orthogonal to the offset and the template, so the residual
+        # gain·R + offset - L reduces to gain·R
+        d = (step_of[running] @ Rv[..., None])[..., 0].astype(float) * gain[:, None]
+        d0, d1, d2 = d[:, 0], d[:, 1], d[:, 2]
+        db = d[:, 3] if shift_y else np.zeros(len(running))
+        ds = 1.0 + d1
+        sr, tr = s[running], t[running]
+        # W <- W o W(d)^-1, all in the group x' = a0 + s·dx + t·dy, y' = b0 + dy
+        shift = -(sr * (d0 - d2 * db) / ds + tr * db)
+        s[running] = sr / ds
+        t[running] = tr - sr * d2 / ds
+        a0[running] += shift
+        b0[running] -= db
         # a step larger than a pixel means the window slid off the match
-        slid = (np.abs(step[:, 0]) >= 1.0) | ~ok
+        slid = (np.abs(shift) >= 1.0) | ~(ds > 0.1)
         active[running[slid]] = False
         # points whose shift no longer changes stop iterating (the others go on)
-        moving = np.abs(step[:, 0]) >= 1e-3
-        if shift_y:
-            moving |= np.abs(step[:, free.index(3)]) >= 1e-3
-        go_on = ~slid & moving
+        go_on = ~slid & ((np.abs(shift) >= 1e-3) | (np.abs(db) >= 1e-3))
         stop = ~go_on if it < iterations - 1 else np.ones(len(running), bool)
-        N_all[running[stop]], R_all[running[stop]], r_all[running[stop]] = N[stop], Rv[stop], r[stop]
+        R_all[running[stop]] = Rv[stop]
         running = running[go_on]
-    N, Rv, r = N_all, R_all, r_all
-    dof = window * window - len(free)
-    s0 = np.sqrt(np.sum(r * r, axis=1) / dof)
-    Ninv = np.linalg.inv(N + np.eye(k)[None] * 1e-12)
-    sigma = s0 * np.sqrt(np.abs(Ninv[:, 0, 0]))
-    Rc = Rv - Rv.mean(axis=1, keepdims=True)
-    Lc = L - L.mean(axis=1, keepdims=True)
-    rho = np.sum(Rc * Lc, axis=1) / np.maximum(np.sqrt(np.sum(Rc ** 2, axis=1) * np.sum(Lc ** 2, axis=1)), 1e-12)
-    moved = np.hypot(p[:, 0], p[:, 3])
+    Rc = R_all - R_all.mean(axis=1, keepdims=True)
+    gain = np.sum(Rc * Lc, axis=1) / np.maximum(np.sum(Rc * Rc, axis=1), 1e-12)
+    resid = gain[:, None] * Rc - Lc
+    s0 = np.sqrt(np.sum(resid * resid, axis=1) / (m - k - 2))
+    # the x shift's precision from the right window's own gradients at the solution, as the forward adjustment
+    # (Gruen's) has it: the template's gradients, differenced at the left image's pixel spacing, understate a
+    # squeezed window's and overstate a stretched one's (paper scale, stretch 1.5 and more: 1.27x the forward
+    # sigma, fewer matches accepted). The gain and offset projected out as above
+    x = base[:, 0, None] + a0[:, None] + s[:, None] * ex + t[:, None] * ey
+    y = base[:, 1, None] + b0[:, None] + ey
+    g = sample_bilinear(corners_gradients[1], x, y) * gain[:, None, None].astype(np.float32)
+    gx, gy = g[..., 0], g[..., 1]
+    sd = np.stack([gx, gx * ex, gx * ey] + ([gy] if shift_y else []), axis=1)
+    sd -= sd.mean(axis=2, keepdims=True)
+    sd -= (np.einsum("nkm,nm->nk", sd, Rc) / np.maximum(np.sum(Rc * Rc, axis=1), 1e-12)[:, None])[..., None] * Rc[:, None, :]
+    N = np.einsum("nkm,njm->nkj", sd, sd).astype(float)
+    N += np.eye(k)[None] * 1e-12 * np.trace(N, axis1=1, axis2=2)[:, None, None]
+    fine = np.abs(np.linalg.det(N)) > 0
+    var = np.full(n, np.inf)
+    var[fine] = np.linalg.inv(N[fine])[:, 0, 0]
+    sigma = s0 * np.sqrt(np.abs(var))
+    rho = np.sum(Rc * Lc, axis=1) / np.maximum(np.sqrt(np.sum(Rc * Rc, axis=1) * Lc2), 1e-12)
     # the shape may change from its start (the correlation's stretch and shear) by this much, no more
-    converged = (active & (moved < 1.5) & (np.abs(p[:, 1] - start[:, 1]) < 0.6) & (np.abs(p[:, 2] - start[:, 2]) < 0.5)
-                 & (p[:, 6] > 0.2))
-    out = base + p[:, [0, 3]]
-    return {"xy": out, "sigma": sigma, "rho": rho, "converged": converged}
+    converged = (active & (np.hypot(a0, b0) < 1.5) & (np.abs(s - s_start) < 0.6) & (np.abs(t - t_start) < 0.5)
+                 & (gain > 0.2))
+    return {"xy": base + np.column_stack([a0, b0]), "sigma": sigma, "rho": rho, "converged": converged}
