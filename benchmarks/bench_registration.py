@@ -41,21 +41,23 @@ from bench_simulate import machine  # noqa: E402
 VARIANTS = {
     "ours": {},
     "ours_weighted": {"weighted": True},
+    "ours_weighted_free_scale": {"weighted": True, "estimate_scale": True},
     "ours_rigid": {"estimate_scale": False},
-    "ours_free_scale": {"scale_sigma": None},
+    "ours_free_scale": {"estimate_scale": True, "scale_sigma": None},
+    "ours_scale_sigma_3e-5": {"estimate_scale": True, "scale_sigma": 3e-5},
     "ours_weighted_rigid": {"weighted": True, "estimate_scale": False},
-    "ours_scale_sigma_1e-4": {"scale_sigma": 1e-4},
-    "ours_scale_sigma_2e-5": {"scale_sigma": 2e-5},
-    "ours_weighted_scale_sigma_2e-5": {"weighted": True, "scale_sigma": 2e-5},
-    "ours_pair_sigma_10um": {"pair_sigma": (2e-5, 3.5e-5, 0.01)},
-    "ours_pair_sigma_5um": {"pair_sigma": (1e-5, 1.75e-5, 0.005)},
-    "ours_pair_sigma_20um": {"pair_sigma": (4e-5, 7e-5, 0.02)},
+    "ours_scale_sigma_1e-4": {"estimate_scale": True, "scale_sigma": 1e-4},
+    "ours_scale_sigma_2e-5": {"estimate_scale": True, "scale_sigma": 2e-5},
+    "ours_weighted_scale_sigma_2e-5": {"weighted": True, "estimate_scale": True, "scale_sigma": 2e-5},
+    "ours_pair_sigma_10um": {"estimate_scale": True, "pair_sigma": (2e-5, 3.5e-5, 0.01)},
+    "ours_pair_sigma_5um": {"estimate_scale": True, "pair_sigma": (1e-5, 1.75e-5, 0.005)},
+    "ours_pair_sigma_20um": {"estimate_scale": True, "pair_sigma": (4e-5, 7e-5, 0.02)},
     "ours_rigid_pair_sigma_10um": {"estimate_scale": False, "pair_sigma": (2e-5, 3.5e-5, 0.01)},
     "ours_rigid_pair_sigma_5um": {"estimate_scale": False, "pair_sigma": (1e-5, 1.75e-5, 0.005)},
-    "ours_pair_sigma_2.5um": {"pair_sigma": (5e-6, 8.75e-6, 0.0025)},
-    "ours_pair_stiffness_1": {"pair_stiffness": 1.0},
-    "ours_pair_stiffness_0.1": {"pair_stiffness": 0.1},
-    "ours_pair_stiffness_10": {"pair_stiffness": 10.0},
+    "ours_pair_sigma_2.5um": {"estimate_scale": True, "pair_sigma": (5e-6, 8.75e-6, 0.0025)},
+    "ours_pair_stiffness_1": {"estimate_scale": True, "pair_stiffness": 1.0},
+    "ours_pair_stiffness_0.1": {"estimate_scale": True, "pair_stiffness": 0.1},
+    "ours_pair_stiffness_10": {"estimate_scale": True, "pair_stiffness": 10.0},
     "ours_rigid_pair_stiffness_1": {"estimate_scale": False, "pair_stiffness": 1.0},
     "ours_rigid_pair_stiffness_10": {"estimate_scale": False, "pair_stiffness": 10.0},
     "ours_rigid_pair_stiffness_100": {"estimate_scale": False, "pair_stiffness": 100.0},
@@ -65,7 +67,7 @@ VARIANTS = {
     "ours_rim_margin_3": {"rim_margin_mm": 3.0},
     "ours_rim_margin_7": {"rim_margin_mm": 7.0},
 }
-DEFAULT_VARIANTS = ["ours", "ours_free_scale", "ours_rigid", "ours_scale_sigma_1e-4"]
+DEFAULT_VARIANTS = ["ours", "ours_free_scale", "ours_scale_sigma_3e-5", "ours_scale_sigma_1e-4"]
 
 
 def icpatch_edges(surfaces, order, cfg):

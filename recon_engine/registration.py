@@ -2,7 +2,8 @@
 
 The points of one surface are registered to the triangular patches of
 another by a 3D similarity transformation (scale, three rotations, three
-translations). The observation is the coplanarity condition: a transformed
+translations; by default the scale is held at 1, the calibration's, see
+``ICPatchConfig.estimate_scale``). The observation is the coplanarity condition: a transformed
 point and the three vertices of its patch enclose zero volume, i.e. the
 point's normal distance to the patch plane is zero. Each point's patch is the
 closest one whose interior the point projects into; pairs farther apart than
@@ -42,14 +43,17 @@ class ICPatchConfig:
     tol_rotation_rad: float = 1e-6
     tol_translation_mm: float = 1e-3
     tol_scale: float = 1e-5
-    estimate_scale: bool = True
-    # a priori standard deviation of each arm's scale about 1 in the multiple registration (None: free). The
-    # calibration fixes every arm's scale to the test field's survey: paper scale, our calibration against the
-    # truth, the distances between an arm's cameras are off by 0.2-3.4e-5 of their length, and the prior is that
-    # precision. It keeps the scale from absorbing what is left of the surfaces' shape errors in narrow
-    # overlaps: free, the tiny preset's weakly overlapping arms C and D took scales of 0.9972 and 0.9970 (3 mm
-    # at 1 m), the weak pair B-C fell out of the adjustment and the torso's RMS was 1.06 mm (0.51 mm held)
-    scale_sigma: float | None = 3e-5
+    # each arm's scale is estimated (the 7-parameter similarity of the paper's ICPatch), or held at 1 (rigid). The
+    # calibration fixes every arm's scale to the test field's survey (paper scale, our calibration against the
+    # truth: the distances between an arm's cameras off by 0.2-3.4e-5 of their length), while a free scale
+    # absorbs what is left of the surfaces' shape errors in the narrow overlaps. Paper scale, our calibration,
+    # 9 arms of 3 captures (docs/benchmarks.md, ninth session), mean position error: scale free 0.0163 mm,
+    # held by a prior of 1e-4 0.0162, of 3e-5 0.0156, rigid 0.0125 (Open3D's multiway 0.0128). Tiny preset, free:
+    # arms C and D took scales of 0.9972 and 0.9970 (3 mm at 1 m) and the torso's RMS was 1.06 mm (rigid 0.53)
+    estimate_scale: bool = False
+    # a priori standard deviation of each arm's scale about 1 in the multiple registration when the scale is
+    # estimated (None: free); the pseudo-observation keeps the scale near the calibration's
+    scale_sigma: float | None = None
     # systematic error of each neighbouring pair's relative placement, 1 sigma (scale, rotation [rad], translation
     # [mm]; None: none). Each arm's surface carries its own cameras' calibration errors, so two surfaces fit each
     # other best at a placement off the true one by more than their points' noise allows; the multiple

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from recon_engine.bundle import rodrigues
-from recon_engine.registration import Transform, icpatch
+from recon_engine.registration import ICPatchConfig, Transform, icpatch
 from recon_engine.surface import PointSurface, triangulate, vertex_normals
 
 
@@ -32,7 +32,7 @@ def test_it_recovers_a_known_similarity():
     part = _torso_like(-50, 200, n=8000, seed=2, noise=0.05)
     truth = Transform(1.0005, rodrigues(np.radians([0.4, -0.3, 1.0])), np.array([4.0, -3.0, 2.0]))
     moving = _moved(part, truth.inverse())  # what the other arm measured in its own frame
-    res = icpatch(moving, fixed)
+    res = icpatch(moving, fixed, cfg=ICPatchConfig(estimate_scale=True))
     T = res["transform"]
     err = T.apply(moving.points) - part.points
     assert res["converged"]
