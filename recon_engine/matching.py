@@ -499,8 +499,9 @@ def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarra
     the geometric parameters (the Schur complement of the full normal
     equations). The x shift's precision is the forward adjustment's, from
     the right window's gradients at the solution. All points are solved at
-    once, vectorized; about 2.5x faster than the forward-additive form
-    (a new Jacobian and normal equations at every iteration) that it replaced.
+    once, vectorized; 2.1x faster than the forward-additive form
+    (a new Jacobian and normal equations at every iteration) that it replaced
+    (40 000 synthetic windows of 9 px, docs/benchmarks.md).
 
     ``prepared`` is ``least_squares_image(right)``: pass it in when refining
     several batches on one image.
