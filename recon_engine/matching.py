@@ -479,6 +479,23 @@ def _sample_windows(corners: np.ndarray, pixel: np.ndarray, local_x: np.ndarray,
     return value
 
 
+def _projected_normal_equations(sd: np.ndarray, centred: np.ndarray, ridge: float) -> tuple:
+    """Steepest-descent images ``sd`` (N, K, M) with a radiometric offset and gain projected out, and their normal equations.
+
+    The offset is the window's mean, the gain the mean-free window ``centred``
+    (N, M) itself: removing both components (the Schur complement of the full
+    normal equations) leaves the geometric parameters' system. ``ridge`` (a
+    fraction of the trace) keeps nearly flat windows invertible. Returns the
+    projected ``sd`` (a new array) and ``N`` (N, K, K) float64.
+    """
+    sd = sd - sd.mean(axis=2, keepdims=True)
+    c2 = np.maximum(np.sum(centred * centred, axis=1), 1e-12)
+    sd -= (np.einsum("nkm,nm->nk", sd, centred) / c2[:, None])[..., None] * centred[:, None, :]
+    N = np.einsum("nkm,njm->nkj", sd, sd).astype(float)
+    N += np.eye(sd.shape[1])[None] * ridge * np.trace(N, axis1=1, axis2=2)[:, None, None]
+    return sd, N
+
+
 def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, xy_right: np.ndarray,
                          window: int = 11, iterations: int = 8, shift_y: bool = True, initial_scale=1.0,
                          initial_shear=0.0, prepared: tuple | None = None) -> dict:
@@ -530,10 +547,7 @@ def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarra
     # project out the radiometric offset (the mean) and gain (the template itself)
     Lc = L - L.mean(axis=1, keepdims=True)
     Lc2 = np.maximum(np.sum(Lc * Lc, axis=1), 1e-12)
-    sd -= sd.mean(axis=2, keepdims=True)
-    sd -= (np.einsum("nkm,nm->nk", sd, Lc) / Lc2[:, None])[..., None] * Lc[:, None, :]
-    N = np.einsum("nkm,njm->nkj", sd, sd).astype(float)
-    N += np.eye(k)[None] * 1e-9 * np.trace(N, axis1=1, axis2=2)[:, None, None]
+    sd, N = _projected_normal_equations(sd, Lc, ridge=1e-9)
     ok = np.abs(np.linalg.det(N)) > 0  # a flat template has no geometry to fit
     Ninv = np.zeros_like(N)
     Ninv[ok] = np.linalg.inv(N[ok])
@@ -594,10 +608,7 @@ def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarra
     g = sample_bilinear(corners_gradients[1], x, y) * gain[:, None, None].astype(np.float32)
     gx, gy = g[..., 0], g[..., 1]
     sd = np.stack([gx, gx * ex, gx * ey] + ([gy] if shift_y else []), axis=1)
-    sd -= sd.mean(axis=2, keepdims=True)
-    sd -= (np.einsum("nkm,nm->nk", sd, Rc) / np.maximum(np.sum(Rc * Rc, axis=1), 1e-12)[:, None])[..., None] * Rc[:, None, :]
-    N = np.einsum("nkm,njm->nkj", sd, sd).astype(float)
-    N += np.eye(k)[None] * 1e-12 * np.trace(N, axis1=1, axis2=2)[:, None, None]
+    _, N = _projected_normal_equations(sd, Rc, ridge=1e-12)
     fine = np.abs(np.linalg.det(N)) > 0
     var = np.full(n, np.inf)
     var[fine] = np.linalg.inv(N[fine])[:, 0, 0]
