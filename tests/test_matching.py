@@ -140,3 +140,29 @@ def test_least_squares_matching_samples_the_exact_bilinear_image():
            + fx * fy * f[yi + 1, xi + 1])
     assert np.abs(value[inside] - ref).max() < 1e-3  # grey levels (float32), not OpenCV's 1/32-px steps
     assert np.all(value[~inside] == 0)
+
+
+def test_the_long_search_in_the_pyramid_finds_the_full_resolution_disparities():
+    from dataclasses import replace
+
+    from recon_engine.matching import _seed_disparities
+
+    rng = np.random.default_rng(6)
+    cells = (rng.random((100, 300)) > 0.5).astype(np.float32) * 200 + 20
+    # 2.5-px pattern cells as at paper scale; a range of 400 px either side as there
+    left = cv2.GaussianBlur(cv2.resize(cells, (750, 250), interpolation=cv2.INTER_NEAREST), (0, 0), 0.8)
+    right = np.roll(left, -310, axis=1) + rng.normal(0, 2, left.shape).astype(np.float32)
+    xy = np.column_stack([rng.uniform(320, 730, 400), rng.uniform(10, 240, 400)])
+    full_cfg = MatchingConfig(sparse_level=0)
+    pyramid_cfg = replace(full_cfg, sparse_level=1, sparse_level_min_radius=150)
+    seeds_full, d_full = _seed_disparities(left, right, xy, 300.0, 400, full_cfg)
+    seeds, d = _seed_disparities(left, right, xy, 300.0, 400, pyramid_cfg)
+    assert len(seeds_full) > 0.9 * len(xy) and len(seeds) > 0.97 * len(seeds_full)
+    assert np.all(np.abs(d - 310) < 0.5) and np.median(np.abs(d - 310)) < 0.05
+    # found again at full resolution: the same peaks as the full-resolution search's
+    common, i, j = np.intersect1d(seeds[:, 0], seeds_full[:, 0], return_indices=True)
+    assert len(common) == len(seeds) and np.allclose(d[i], d_full[j], atol=1e-4)
+    # a short range stays at full resolution: the same seeds as without the pyramid
+    short, d_short = _seed_disparities(left, right, xy, 300.0, 100, pyramid_cfg)
+    ref, d_ref = _seed_disparities(left, right, xy, 300.0, 100, full_cfg)
+    assert np.array_equal(short, ref) and np.array_equal(d_short, d_ref)
