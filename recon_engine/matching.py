@@ -28,7 +28,7 @@ All coordinates are rectified pixels (x = column, y = row).
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -54,6 +54,7 @@ class MatchingConfig:
     # px, the long search uses the pyramid only for ranges at least this long either side (paper scale: about
     # 400 px; the tiny preset's 480 x 320 px images, whose pattern halving blurs away: under 100 px)
     sparse_level_min_radius: int = 150
+    sparse_level_fallback: bool = True  # seeds the pyramid's search rejects search again at full resolution
     uniqueness: float = 0.9  # the second peak must stay below this fraction of the first
     dense_radius: int = 6  # px, stage-2 search either side of the predicted disparity
     scales: tuple = (1.0, 0.8, 1.25)  # stretches of the right window along the row tried in stage 2
@@ -282,11 +283,17 @@ def _seed_disparities(left, right, xy, d_mid, radius, cfg):
     coarse = _search(small_left, small_right, xy / f, (xy[:, 0] - d_mid) / f, -(-radius // f) + 1, 0,
                      max(3, cfg.sparse_window // f) | 1, cfg)
     ok = (coarse["ncc"] >= cfg.sparse_min_ncc) & (coarse["second"] < cfg.uniqueness * coarse["ncc"]) & ~coarse["at_edge"]
-    xy = xy[ok]
     # the coarse peak is within half a level pixel (plus its subpixel error): search f + 1 columns either side
-    fine = _search(left, right, xy, coarse["xy"][ok, 0] * f, f + 1, 0, cfg.sparse_window, cfg)
-    ok = (fine["ncc"] >= cfg.sparse_min_ncc) & ~fine["at_edge"]
-    return xy[ok], (xy[:, 0] - fine["xy"][:, 0])[ok]
+    fine = _search(left, right, xy[ok], coarse["xy"][ok, 0] * f, f + 1, 0, cfg.sparse_window, cfg)
+    found = (fine["ncc"] >= cfg.sparse_min_ncc) & ~fine["at_edge"]
+    seeds, d = [xy[ok][found]], [(xy[ok, 0] - fine["xy"][:, 0])[found]]
+    if cfg.sparse_level_fallback:
+        # where the pyramid loses the pattern (steep skin squeezes it in one view) the full resolution may not
+        rest = xy[~ok]
+        seeds_rest, d_rest = _seed_disparities(left, right, rest, d_mid, radius, replace(cfg, sparse_level=0))
+        seeds.append(seeds_rest)
+        d.append(d_rest)
+    return np.concatenate(seeds), np.concatenate(d)
 
 
 def _plane_prediction(anchors, d_anchor, nb, xy):

@@ -15,6 +15,7 @@ track has no observation.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -23,6 +24,7 @@ from scipy.spatial import cKDTree
 from .epipolar import rectify_pair
 from .features import harris_features, region_of_interest
 from .matching import MatchingConfig, match_points
+from .parallel import cores
 
 
 @dataclass(frozen=True)
@@ -57,7 +59,9 @@ def track_images(images: list, cameras: list, depth_bounds, cfg: TrackingConfig 
     tracks = np.zeros((0, K, 2))
     corr = np.zeros((0, K - 1))
     pairs = []
-    for k in range(K - 1):
+
+    def prepare(k):
+        """The rectified pair k, k+1, its left image's region of interest and fresh Harris features."""
         pair = rectify_pair(cameras[k], cameras[k + 1])
         left = pair.resample("left", np.asarray(images[k], dtype=np.float32))
         right = pair.resample("right", np.asarray(images[k + 1], dtype=np.float32))
@@ -66,37 +70,65 @@ def track_images(images: list, cameras: list, depth_bounds, cfg: TrackingConfig 
             poly = pair.to_rectified("left", np.asarray(polygons[k], dtype=float))
         roi = region_of_interest(left, window=cfg.roi_window, polygon=poly)
         fresh, _ = harris_features(left, roi, spacing=cfg.spacing)
-        arriving = np.nonzero(np.isfinite(tracks[:, k, 0]))[0]
-        xy_arr = pair.to_rectified("left", tracks[arriving, k]) if len(arriving) else np.zeros((0, 2))
-        if len(arriving) and len(fresh):
-            d, _ = cKDTree(xy_arr).query(fresh, k=1)
-            fresh = fresh[d > cfg.merge_radius_px]
-        # new tracks for the fresh features
-        new = np.full((len(fresh), K, 2), np.nan)
-        new[:, k] = pair.to_original("left", fresh)
-        tracks = np.concatenate([tracks, new])
-        corr = np.concatenate([corr, np.full((len(fresh), K - 1), np.nan)])
-        ids = np.concatenate([arriving, np.arange(len(tracks) - len(fresh), len(tracks))])
-        xy = np.concatenate([xy_arr, fresh])
-        d0, d1 = depth_bounds(pair) if callable(depth_bounds) else depth_bounds
-        m = match_points(left, right, xy, pair.disparity_range(d0, d1), cfg.matching)
-        ok = m["valid"]
-        idx = np.nonzero(ok)[0]
-        xy_r = m["xy"][ok]
-        rho = m["ncc"][ok]
-        # conflicts: two tracks on one point of the right image; the better one continues
-        if len(xy_r) > 1:
-            pairs_close = cKDTree(xy_r).query_pairs(cfg.conflict_radius_px, output_type="ndarray")
-            if len(pairs_close):
-                loser = np.where(rho[pairs_close[:, 0]] >= rho[pairs_close[:, 1]], pairs_close[:, 1], pairs_close[:, 0])
-                keep = np.ones(len(xy_r), bool)
-                keep[loser] = False
-                idx, xy_r, rho = idx[keep], xy_r[keep], rho[keep]
-        tracks[ids[idx], k + 1] = pair.to_original("right", xy_r)
-        corr[ids[idx], k] = rho
-        reasons = {}
-        for r in m["reason"][~ok]:
-            reasons[r] = reasons.get(r, 0) + 1
-        pairs.append({"left": k, "right": k + 1, "roi_fraction": float(roi.mean()), "fresh_features": int(len(fresh)),
-                      "arriving_tracks": int(len(arriving)), "matched": int(len(idx)), "rejected": reasons})
+        return pair, left, right, roi, fresh
+
+    if cores(cfg.matching.threads) == 1:
+        for k in range(K - 1):
+            tracks, corr, figures = _track_pair(k, *prepare(k), tracks, corr, depth_bounds, cfg)
+            pairs.append(figures)
+        return {"tracks": tracks, "ncc": corr, "pairs": pairs}
+    # the next pair is prepared on another thread (OpenCV releases the GIL) while this one is matched: it fills
+    # the matching's single-threaded stretches; two pairs' images are held at once
+    with ThreadPoolExecutor(1) as pool:
+        ahead = pool.submit(prepare, 0)
+        for k in range(K - 1):
+            ready = ahead.result()
+            if k + 1 < K - 1:
+                ahead = pool.submit(prepare, k + 1)
+            tracks, corr, figures = _track_pair(k, *ready, tracks, corr, depth_bounds, cfg)
+            pairs.append(figures)
+            del ready
     return {"tracks": tracks, "ncc": corr, "pairs": pairs}
+
+
+def _track_pair(k, pair, left, right, roi, fresh, tracks, corr, depth_bounds, cfg):
+    """Matches pair k's arriving tracks and fresh features into its right image.
+
+    Returns the tracks and correlations grown by the fresh features and
+    the matches (new arrays), and the pair's figures for the report.
+    """
+    K = tracks.shape[1]
+    arriving = np.nonzero(np.isfinite(tracks[:, k, 0]))[0]
+    xy_arr = pair.to_rectified("left", tracks[arriving, k]) if len(arriving) else np.zeros((0, 2))
+    if len(arriving) and len(fresh):
+        d, _ = cKDTree(xy_arr).query(fresh, k=1)
+        fresh = fresh[d > cfg.merge_radius_px]
+    # new tracks for the fresh features
+    new = np.full((len(fresh), K, 2), np.nan)
+    new[:, k] = pair.to_original("left", fresh)
+    tracks = np.concatenate([tracks, new])
+    corr = np.concatenate([corr, np.full((len(fresh), K - 1), np.nan)])
+    ids = np.concatenate([arriving, np.arange(len(tracks) - len(fresh), len(tracks))])
+    xy = np.concatenate([xy_arr, fresh])
+    d0, d1 = depth_bounds(pair) if callable(depth_bounds) else depth_bounds
+    m = match_points(left, right, xy, pair.disparity_range(d0, d1), cfg.matching)
+    ok = m["valid"]
+    idx = np.nonzero(ok)[0]
+    xy_r = m["xy"][ok]
+    rho = m["ncc"][ok]
+    # conflicts: two tracks on one point of the right image; the better one continues
+    if len(xy_r) > 1:
+        pairs_close = cKDTree(xy_r).query_pairs(cfg.conflict_radius_px, output_type="ndarray")
+        if len(pairs_close):
+            loser = np.where(rho[pairs_close[:, 0]] >= rho[pairs_close[:, 1]], pairs_close[:, 1], pairs_close[:, 0])
+            keep = np.ones(len(xy_r), bool)
+            keep[loser] = False
+            idx, xy_r, rho = idx[keep], xy_r[keep], rho[keep]
+    tracks[ids[idx], k + 1] = pair.to_original("right", xy_r)
+    corr[ids[idx], k] = rho
+    reasons = {}
+    for r in m["reason"][~ok]:
+        reasons[r] = reasons.get(r, 0) + 1
+    return tracks, corr, {"left": k, "right": k + 1, "roi_fraction": float(roi.mean()),
+                          "fresh_features": int(len(fresh)), "arriving_tracks": int(len(arriving)),
+                          "matched": int(len(idx)), "rejected": reasons}
