@@ -120,6 +120,20 @@ def test_region_growing_follows_steep_skin():
     assert np.all(np.abs(m["xy"][grown, 1] - xy[grown, 1]) < 0.2)
 
 
+def test_stage_two_stretches_the_window_as_its_anchors_predict():
+    left, right, disparity = _ramp_pair(0.3)
+    rng = np.random.default_rng(4)
+    xy = np.column_stack([rng.uniform(20, 250, 1500), rng.uniform(20, 190, 1500)])
+    steep = xy[:, 0] > 160  # the right window shrinks to 0.88-0.7 of the left one there
+    # one try per point and no growing: only the window's shape differs
+    fixed = match_points(left, right, xy, (5, 140), MatchingConfig(grow_passes=0, predicted_shape=False, scales=()))
+    m = match_points(left, right, xy, (5, 140), MatchingConfig(grow_passes=0, predicted_shape=True, scales=()))
+    assert m["valid"][steep].mean() > fixed["valid"][steep].mean() + 0.03
+    v = m["valid"]
+    err = np.abs(m["xy"][v, 0] - (xy[v, 0] - disparity(xy[v, 0])))
+    assert np.median(err) < 0.02 and err.max() < 0.5
+
+
 def test_least_squares_matching_samples_the_exact_bilinear_image():
     from recon_engine.matching import _sample_windows, least_squares_image
 
