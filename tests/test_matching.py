@@ -61,6 +61,15 @@ def test_least_squares_matching_sharpens_the_correlation_peak(pair_data):
     assert after < 0.7 * before
 
 
+def test_matches_do_not_depend_on_how_the_points_are_split_into_blocks_and_threads(pair_data):
+    p, left, right, xy, dr, true_r = pair_data
+    one = match_points(left, right, xy, dr, MatchingConfig(threads=1))
+    # the worker processes of a whole capture match on one thread each, a service's arm job on two
+    other = match_points(left, right, xy, dr, MatchingConfig(threads=2, search_block=30_000, chunk=300))
+    np.testing.assert_array_equal(one["xy"], other["xy"])
+    np.testing.assert_array_equal(one["ncc"], other["ncc"])
+
+
 def test_every_rejection_has_a_reason(pair_data):
     p, left, right, xy, dr, _ = pair_data
     m = match_points(left, right, xy, dr)
