@@ -65,8 +65,8 @@ class MatchingConfig:
     dense_radius: int = 6  # px, stage-2 search either side of the predicted disparity
     # stage 2 tries the stretch and shear of the right window that its anchors' disparity plane predicts (the
     # plane's gradient), then these fixed stretches along the row for the points not matched well. Paper scale,
-    # coverage of arms A-D: fixed (1.0, 0.8, 1.25) only 85.8 / 85.9 / 81.3 / 83.6%, 1.77 tries per point;
-    # predicted, then (0.8, 1.25): 86.8 / 86.5 / 81.3 / 84.6%, 1.7 tries; predicted only: the same coverage in one
+    # coverage of arms A-D: fixed (1.0, 0.8, 1.25) only 85.8 / 85.9 / 81.3 / 83.6%, 1.77 tries per point on arm C;
+    # predicted, then (0.8, 1.25): 86.8 / 86.5 / 81.3 / 84.6%, 1.72 tries; predicted only: the same coverage in one
     # try, and predicted, then 1.0: A 86.8, C 81.6%, but with either the tiny preset's weak overlap B-C lost its
     # point-patch pairs (the torso's RMS 0.56 and 0.82 mm against 0.53): the tiny preset's registration flips with
     # small changes of the surfaces
@@ -285,12 +285,14 @@ def _seed_disparities(left, right, xy, d_mid, radius, cfg):
     image pyramid's level of that many halvings (a window of the same
     footprint on the skin), and each peak is then found again at full
     resolution within a few columns of it: the long search costs a quarter
-    (or less) of the full-resolution one per level. Short ranges (``radius``
-    below ``cfg.sparse_level_min_radius``) are searched at full resolution:
-    they are cheap there, and images whose pattern is barely resolved lose
-    it at the coarser level. The uniqueness test is
+    (or less) of the full-resolution one per level. The uniqueness test is
     the long search's; the correlation and the subpixel peak are the full
-    resolution's. Returns (seed points, their disparities) that pass.
+    resolution's. With ``cfg.sparse_level_fallback`` the seeds the coarse
+    level rejects search the whole range at full resolution. Short ranges
+    (``radius`` below ``cfg.sparse_level_min_radius``) are searched at full
+    resolution only: they are cheap there, and images whose pattern is
+    barely resolved lose it at the coarser level. Returns (seed points,
+    their disparities) that pass.
     """
     f = 2 ** cfg.sparse_level if radius >= cfg.sparse_level_min_radius else 1
     if f == 1:

@@ -154,11 +154,11 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     ok = reason == ""
     sigma[ok] = np.sqrt(np.maximum(np.linalg.eigvalsh(res["cov"][ok])[:, -1], 0))
     reason[(reason == "") & (sigma > cfg.max_sigma_mm)] = "imprecise"
-    if ok.any():
+    precise = reason == ""
+    if precise.any():
         # far less precise than the arm's typical point: two rays meeting at a narrow angle, where a wrong match
         # moves the point along them unseen (paper scale: a 7.6 mm stray at sigma 0.74 mm, the arm's median 0.05)
-        typical = float(np.median(sigma[reason == ""])) if (reason == "").any() else np.inf
-        reason[(reason == "") & (sigma > cfg.max_sigma_factor * typical)] = "imprecise"
+        reason[precise & (sigma > cfg.max_sigma_factor * np.median(sigma[precise]))] = "imprecise"
     keep = reason == ""
     # wrong matches of two-ray points show only against their neighbours
     stray = off_surface(res["X"][keep])

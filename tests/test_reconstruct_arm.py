@@ -43,6 +43,19 @@ def test_the_report_counts_rays_and_precision(arm_a):
     assert len(surface.faces) > len(surface) and np.allclose(np.linalg.norm(surface.normals, axis=1), 1)
 
 
+def test_it_drops_points_far_less_precise_than_the_arms_median(arm_a):
+    from recon_engine.reconstruction import ReconstructionConfig
+
+    rig, cal, cap, (surface, report) = arm_a
+    # at the tiny preset no point is 10x less precise than the median; at 1.5x some are
+    strict, strict_report = reconstruct_arm(cap, rig, cal, "A", ReconstructionConfig(max_sigma_factor=1.5))
+    assert strict_report["dropped"].get("imprecise", 0) > report["dropped"].get("imprecise", 0)
+    assert len(strict) < len(surface)
+    # the least precise points go: what is left is no less precise than before, and its worst is better
+    assert strict.data["sigma_mm"].max() < surface.data["sigma_mm"].max()
+    assert np.median(strict.data["sigma_mm"]) <= np.median(surface.data["sigma_mm"])
+
+
 def test_normals_face_the_arm(arm_a):
     rig, cal, cap, (surface, _) = arm_a
     eye = np.mean([cal.cameras[c].C for c in ("A1", "A2", "A3", "A4", "A5")], axis=0)
