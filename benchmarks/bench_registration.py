@@ -41,7 +41,6 @@ from bench_simulate import machine  # noqa: E402
 VARIANTS = {
     "ours": {},
     "ours_weighted": {"weighted": True},
-    "ours_weighted_free_scale": {"weighted": True, "estimate_scale": True},
     "ours_rigid": {"estimate_scale": False},
     "ours_free_scale": {"estimate_scale": True, "scale_sigma": None},
     "ours_scale_sigma_3e-5": {"estimate_scale": True, "scale_sigma": 3e-5},

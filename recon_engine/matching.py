@@ -294,13 +294,14 @@ def _seed_disparities(left, right, xy, d_mid, radius, cfg):
     barely resolved lose it at the coarser level. Returns (seed points,
     their disparities) that pass.
     """
-    f = 2 ** cfg.sparse_level if radius >= cfg.sparse_level_min_radius else 1
-    if f == 1:
+    levels = cfg.sparse_level if radius >= cfg.sparse_level_min_radius else 0
+    f = 2 ** levels
+    if levels == 0:
         r = _search(left, right, xy, xy[:, 0] - d_mid, radius, 0, cfg.sparse_window, cfg)
         ok = (r["ncc"] >= cfg.sparse_min_ncc) & (r["second"] < cfg.uniqueness * r["ncc"]) & ~r["at_edge"]
         return xy[ok], (xy[:, 0] - r["xy"][:, 0])[ok]
     small_left, small_right = left, right
-    for _ in range(int(np.log2(f))):
+    for _ in range(levels):
         # Gaussian 5-tap smoothing before each halving; level pixel i lies on pixel 2i of the level below
         small_left, small_right = cv2.pyrDown(small_left), cv2.pyrDown(small_right)
     coarse = _search(small_left, small_right, xy / f, (xy[:, 0] - d_mid) / f, -(-radius // f) + 1, 0,
@@ -317,6 +318,15 @@ def _seed_disparities(left, right, xy, d_mid, radius, cfg):
         seeds.append(seeds_rest)
         d.append(d_rest)
     return np.concatenate(seeds), np.concatenate(d)
+
+
+def _window_shape(grad: np.ndarray) -> tuple:
+    """Stretch and shear of the right window from the disparity plane's gradient (N, 2) (px/px).
+
+    ``x_right = x_left - d(x, y)``: the window's columns stretch by
+    ``1 - dd/dx`` and shift by ``-dd/dy`` per row.
+    """
+    return 1.0 - grad[:, 0], -grad[:, 1]
 
 
 def _plane_prediction(anchors, d_anchor, nb, xy):
@@ -438,7 +448,8 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
     if cfg.predicted_shape:
         # the anchors' plane predicts the right window's stretch (1 - dd/dx) and shear (-dd/dy) too
         lo, hi = cfg.grow_scale_range
-        tries.insert(0, (np.clip(1.0 - grad[:, 0], lo, hi), np.clip(-grad[:, 1], -1.0, 1.0)))
+        scale, shear = _window_shape(grad)
+        tries.insert(0, (np.clip(scale, lo, hi), np.clip(shear, -1.0, 1.0)))
     if not tries:
         tries = [(np.ones(n), np.zeros(n))]
     best = None
@@ -494,8 +505,7 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
         # missing neighbours (beyond the radius) repeat the nearest one: it adds nothing to the plane
         nb = np.where(nb >= len(seeds), nb[:, :1], nb)
         d_pred, grad, fit = _plane_fit(seeds, d_seed, nb, xy[todo])
-        scale = 1.0 - grad[:, 0]  # x_right = x_left - d(x, y): columns stretch by 1 - dd/dx
-        shear = -grad[:, 1]  # and shift by -dd/dy per row
+        scale, shear = _window_shape(grad)
         ok = fit & (scale >= cfg.grow_scale_range[0]) & (scale <= cfg.grow_scale_range[1]) & (np.abs(shear) <= 1.0)
         todo, d_pred, scale, shear = todo[ok], d_pred[ok], scale[ok], shear[ok]
         if len(todo) == 0:
@@ -513,6 +523,12 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
         out_ncc[todo[won]] = ncc3[won]
     valid = reason == ""
     return {"xy": out_xy, "ncc": out_ncc, "valid": valid, "reason": reason}
+
+
+def reason_counts(reason: np.ndarray) -> dict:
+    """How many times each reason (str) occurs in ``reason``, for a report."""
+    why, count = np.unique(np.asarray(reason).astype(str), return_counts=True)
+    return {str(w): int(c) for w, c in zip(why, count)}
 
 
 def least_squares_image(image: np.ndarray) -> tuple:

@@ -29,6 +29,7 @@ from .registration import (ICPatchConfig, Transform, chain_initial, multi_surfac
                            patch_indices, weak_arms)
 from .surface import (PointSurface, flank_faces, in_patches, make_surface, off_surface, small_components,
                       subset)
+from .matching import reason_counts
 from .tracking import TrackingConfig, track_images
 
 ROI_KEY = "roi_polygons"  # capture.json: {"A1": [[x, y], ...]} user-drawn regions (px)
@@ -189,9 +190,7 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     keep = reason == ""
     surface = subset(surface, ~island)
     t4 = time.perf_counter()
-    dropped = {}
-    for r in reason[~keep]:
-        dropped[str(r)] = dropped.get(str(r), 0) + 1
+    dropped = reason_counts(reason[~keep])
     rays = res["rays"][keep]
     report = {
         "arm": arm_id, "cameras": used, "unusable_images": unusable,

@@ -23,7 +23,7 @@ from scipy.spatial import cKDTree
 
 from .epipolar import rectify_pair
 from .features import harris_features, region_of_interest
-from .matching import MatchingConfig, match_points
+from .matching import MatchingConfig, match_points, reason_counts
 from .parallel import cores
 
 
@@ -72,23 +72,31 @@ def track_images(images: list, cameras: list, depth_bounds, cfg: TrackingConfig 
         fresh, _ = harris_features(left, roi, spacing=cfg.spacing)
         return pair, left, right, roi, fresh
 
-    if cores(cfg.matching.threads) == 1:
-        for k in range(K - 1):
-            tracks, corr, figures = _track_pair(k, *prepare(k), tracks, corr, depth_bounds, cfg)
-            pairs.append(figures)
-        return {"tracks": tracks, "ncc": corr, "pairs": pairs}
-    # the next pair is prepared on another thread (OpenCV releases the GIL) while this one is matched: it fills
-    # the matching's single-threaded stretches; two pairs' images are held at once
-    with ThreadPoolExecutor(1) as pool:
-        ahead = pool.submit(prepare, 0)
-        for k in range(K - 1):
-            ready = ahead.result()
-            if k + 1 < K - 1:
-                ahead = pool.submit(prepare, k + 1)
-            tracks, corr, figures = _track_pair(k, *ready, tracks, corr, depth_bounds, cfg)
-            pairs.append(figures)
-            del ready
+    # with more than one thread the next pair is prepared on another (OpenCV releases the GIL) while this one is
+    # matched: it fills the matching's single-threaded stretches
+    for k, prepared in enumerate(_in_order(prepare, K - 1, ahead=cores(cfg.matching.threads) > 1)):
+        tracks, corr, figures = _track_pair(k, *prepared, tracks, corr, depth_bounds, cfg)
+        pairs.append(figures)
     return {"tracks": tracks, "ncc": corr, "pairs": pairs}
+
+
+def _in_order(fn, n: int, ahead: bool):
+    """``fn(0)``, …, ``fn(n - 1)`` in order; with ``ahead``, each next one computed on another thread meanwhile.
+
+    Up to three results are alive at once: the one in use, the next one, and
+    the one after it being computed.
+    """
+    if not ahead:
+        for k in range(n):
+            yield fn(k)
+        return
+    with ThreadPoolExecutor(1) as pool:
+        pending = pool.submit(fn, 0) if n else None
+        for k in range(n):
+            ready = pending.result()
+            if k + 1 < n:
+                pending = pool.submit(fn, k + 1)
+            yield ready
 
 
 def _track_pair(k, pair, left, right, roi, fresh, tracks, corr, depth_bounds, cfg):
@@ -126,9 +134,6 @@ def _track_pair(k, pair, left, right, roi, fresh, tracks, corr, depth_bounds, cf
             idx, xy_r, rho = idx[keep], xy_r[keep], rho[keep]
     tracks[ids[idx], k + 1] = pair.to_original("right", xy_r)
     corr[ids[idx], k] = rho
-    reasons = {}
-    for r in m["reason"][~ok]:
-        reasons[r] = reasons.get(r, 0) + 1
     return tracks, corr, {"left": k, "right": k + 1, "roi_fraction": float(roi.mean()),
                           "fresh_features": int(len(fresh)), "arriving_tracks": int(len(arriving)),
-                          "matched": int(len(idx)), "rejected": reasons}
+                          "matched": int(len(idx)), "rejected": reason_counts(m["reason"][~ok])}
