@@ -60,7 +60,9 @@ class MatchingConfig:
     # px, the long search uses the pyramid only for ranges at least this long either side (paper scale: about
     # 400 px; the tiny preset's 480 x 320 px images, whose pattern halving blurs away: under 100 px)
     sparse_level_min_radius: int = 150
-    sparse_level_fallback: bool = True  # seeds the pyramid's search rejects search again at full resolution
+    # seeds the pyramid's search rejects search again at full resolution. Paper scale, arm C: +0.2 points of
+    # coverage with growing back (tracking), for 3.6 s of the arm's 17.6 (+0.8 points without growing back)
+    sparse_level_fallback: bool = False
     uniqueness: float = 0.9  # the second peak must stay below this fraction of the first
     dense_radius: int = 6  # px, stage-2 search either side of the predicted disparity
     # stage 2 tries the stretch and shear of the right window that its anchors' disparity plane predicts (the
@@ -482,6 +484,35 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
     # stage 3: region growing. Where the skin turns away from the cameras the disparity changes faster than
     # the anchors' planes follow, and the two views foreshorten it differently; the points matched so far
     # predict both (disparity, stretch and shear of the right window) right next to each unmatched point
+    reason, out_xy, out_ncc = _grow(left, right, xy, reason, out_xy, out_ncc, cfg, prepared)
+    valid = reason == ""
+    return {"xy": out_xy, "ncc": out_ncc, "valid": valid, "reason": reason}
+
+
+def grow_matches(left: np.ndarray, right: np.ndarray, xy: np.ndarray, xy_right: np.ndarray,
+                 cfg: MatchingConfig | None = None) -> dict:
+    """Region growing alone: left points ``xy`` (N, 2) whose right points ``xy_right`` (N, 2) are known (NaN
+    where not) predict the disparity, stretch and shear of their unmatched neighbours (stage 3 of
+    ``match_points``).
+
+    The known matches are kept as they are. Returns the same as ``match_points``; ``reason`` is "not reached"
+    for points growing never tried.
+    """
+    cfg = cfg or MatchingConfig()
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+    out_xy = np.array(xy_right, dtype=float).reshape(-1, 2)
+    known = np.isfinite(out_xy).all(axis=1)
+    reason = np.where(known, "", "not reached").astype(object)
+    out_ncc = np.where(known, 1.0, -1.0)
+    prepared = least_squares_image(right) if cfg.refine else None
+    reason, out_xy, out_ncc = _grow(left, right, xy, reason, out_xy, out_ncc, cfg, prepared)
+    valid = reason == ""
+    return {"xy": out_xy, "ncc": out_ncc, "valid": valid, "reason": reason}
+
+
+def _grow(left, right, xy, reason, out_xy, out_ncc, cfg, prepared):
+    """Rounds of region growing from the points with ``reason`` "" (see ``match_points``); new arrays returned."""
+    reason, out_xy, out_ncc = reason.copy(), out_xy.copy(), out_ncc.copy()
     fresh = None  # points matched in the last pass: only their neighbourhoods have anything new to offer
     for _ in range(cfg.grow_passes):
         valid = reason == ""
@@ -521,8 +552,9 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
         fresh = todo[won]
         out_xy[todo[won]] = xy3[won]
         out_ncc[todo[won]] = ncc3[won]
-    valid = reason == ""
-    return {"xy": out_xy, "ncc": out_ncc, "valid": valid, "reason": reason}
+    return reason, out_xy, out_ncc
+
+
 
 
 def reason_counts(reason: np.ndarray) -> dict:

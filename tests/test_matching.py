@@ -93,9 +93,12 @@ def test_a_shifted_copy_is_matched_at_the_shift():
     assert np.allclose(m["xy"][v, 0], xy[v, 0] - 17, atol=0.01) and np.allclose(m["xy"][v, 1], xy[v, 1], atol=0.01)
 
 
-def _ramp_pair(gradient: float):
+def _ramp_pair(gradient: float, integrate: bool = False):
     """A pattern and its right view whose disparity grows ever faster beyond column 100, reaching ``gradient``
-    px/px at column 250: skin that turns away from the cameras."""
+    px/px at column 250: skin that turns away from the cameras.
+
+    With ``integrate`` each right pixel averages the left image over its whole footprint, as a sensor does: the
+    squeezed view loses the pattern's detail instead of aliasing it."""
     rng = np.random.default_rng(5)
     cells = (rng.random((70, 100)) > 0.5).astype(np.float32) * 200 + 20
     left = cv2.GaussianBlur(np.kron(cells, np.ones((3, 3), np.float32)), (0, 0), 0.8)
@@ -111,8 +114,19 @@ def _ramp_pair(gradient: float):
     xl = np.interp(xr, xr_of_xl, xl_grid, left=-100, right=-100)
     mapx = np.repeat(xl[None].astype(np.float32), h, axis=0)
     mapy = np.repeat(np.arange(h, dtype=np.float32)[:, None], w, axis=1)
-    right = cv2.remap(left, mapx, mapy, cv2.INTER_CUBIC, borderValue=0)
-    return left, right, disparity
+    if not integrate:
+        return left, cv2.remap(left, mapx, mapy, cv2.INTER_CUBIC, borderValue=0), disparity
+    # the footprint of right pixel xr runs from xl(xr - 1/2) to xl(xr + 1/2): differences of the left rows'
+    # running integral (16 samples per left pixel)
+    fine = np.arange(0, w - 1, 1 / 16)
+    rows = np.stack([np.interp(fine, np.arange(w), r) for r in left])
+    integral = np.concatenate([np.zeros((h, 1)), np.cumsum(rows, axis=1) / 16], axis=1)
+    edges = np.interp(np.arange(w + 1) - 0.5, xr_of_xl, xl_grid, left=-100, right=-100)
+    pos = np.clip(edges * 16, 0, integral.shape[1] - 1)
+    at = np.stack([np.interp(pos, np.arange(integral.shape[1]), r) for r in integral])
+    width = np.diff(edges)
+    right = np.where((edges[:-1] > 0) & (edges[1:] < w - 1), np.diff(at, axis=1) / np.maximum(width, 1e-9), 0)
+    return left, right.astype(np.float32), disparity
 
 
 def test_region_growing_follows_steep_skin():
@@ -189,3 +203,28 @@ def test_the_long_search_in_the_pyramid_finds_the_full_resolution_disparities():
     short, d_short = _seed_disparities(left, right, xy, 300.0, 100, pyramid_cfg)
     ref, d_ref = _seed_disparities(left, right, xy, 300.0, 100, full_cfg)
     assert np.array_equal(short, ref) and np.array_equal(d_short, d_ref)
+
+
+def test_growing_back_from_the_wider_view_reaches_skin_that_the_squeezed_template_misses():
+    from recon_engine.matching import grow_matches
+
+    # the ramp pair the other way round: the template image squeezes the steep skin (to a third of its width at the
+    # far end), the other shows it whole
+    wide, squeezed, disparity = _ramp_pair(0.65, integrate=True)
+    rng = np.random.default_rng(4)
+    xl = rng.uniform(20, 250, 1500)
+    y = rng.uniform(20, 190, 1500)
+    xy_sq = np.column_stack([xl - disparity(xl), y])  # the same skin points in the squeezed image
+    forward = match_points(squeezed, wide, xy_sq, (-140, -5))
+    v = forward["valid"]
+    # the wide view's own points grow back from the matches into the squeezed image
+    xy_wide = np.column_stack([rng.uniform(20, 250, 1500), rng.uniform(20, 190, 1500)])
+    g = grow_matches(wide, squeezed, np.concatenate([forward["xy"][v], xy_wide]),
+                     np.concatenate([xy_sq[v], np.full((len(xy_wide), 2), np.nan)]))
+    assert np.allclose(g["xy"][:v.sum()], xy_sq[v]) and g["valid"][:v.sum()].all()  # known matches kept
+    back = g["valid"][v.sum():]
+    steep_fwd, steep_back = xl > 200, xy_wide[:, 0] > 200  # stretch 1.67-2 from the squeezed side
+    assert back[steep_back].mean() > v[steep_fwd].mean() + 0.2
+    err = np.abs(g["xy"][v.sum():][back, 0] - (xy_wide[back, 0] - disparity(xy_wide[back, 0])))
+    assert np.median(err) < 0.05 and err.max() < 1.0
+    print(v[steep_fwd].mean(), back[steep_back].mean(), np.median(err), err.max())

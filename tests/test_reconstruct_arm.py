@@ -118,6 +118,35 @@ def test_a_user_drawn_region_carried_with_the_capture_limits_the_surface(torso_s
                   extra={"roi_polygons": polys})
     surface, _ = reconstruct_arm(read_capture(tmp_path / "roi", rig), rig, cal, "A")
     assert 0 < len(surface) < 0.8 * len(full)
-    # every point was matched from inside the polygon of the first image of its track
-    u = np.stack([cal.cameras[c].project(surface.points)[:, 0] for c in ("A1", "A2", "A3", "A4")], axis=1)
+    # every point was matched from inside the polygon of one image of its track (the first, or the right image of a
+    # pair for the matches grown back)
+    u = np.stack([cal.cameras[c].project(surface.points)[:, 0] for c in ("A1", "A2", "A3", "A4", "A5")], axis=1)
     assert np.all(u.min(axis=1) <= w // 2 + 1)
+
+
+def test_skin_hidden_from_the_middle_camera_is_matched_across_it(torso_scenario, arm_a, tmp_path):
+    from dataclasses import replace
+
+    from recon_engine.reconstruction import ReconstructionConfig
+
+    rig, cal, cap, _ = arm_a
+    imgs = load_images(cap, rig)
+    # a strip of A3's view hidden (as behind the subject's arm): flat grey, no pattern
+    imgs["A3"] = imgs["A3"].copy()
+    imgs["A3"][:, 200:260] = 90
+    write_capture(tmp_path / "hidden", kind="torso", rig=rig.serial, captured_at=cap.captured_at, images=imgs)
+    hidden = read_capture(tmp_path / "hidden", rig)
+    cfg = ReconstructionConfig()
+    without, _ = reconstruct_arm(hidden, rig, cal, "A", replace(cfg, tracking=replace(cfg.tracking, skip_pairs=False)))
+    surface, report = reconstruct_arm(hidden, rig, cal, "A", replace(cfg, tracking=replace(cfg.tracking, skip_pairs=True)))
+
+    def across(s):
+        """Points of the hidden strip (a window's half-width inside it) on rays from both sides of A3."""
+        u = cal.cameras["A3"].project(s.points)[:, 0]
+        return (u > 210) & (u < 250) & (s.data["rays"] >= 3)
+
+    # without the pairs A2-A4 (and A1-A3, A3-A5) only A1-A2 and A4-A5 see the strip: two rays at most
+    assert across(without).sum() == 0
+    assert across(surface).sum() > 30 and sum(p.get("skip_grown", 0) for p in report["pairs"]) > 0
+    d = _distances(torso_scenario, surface.points[across(surface)])
+    assert np.sqrt(np.mean(d ** 2)) < 0.7 and d.max() < 3.0
