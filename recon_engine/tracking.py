@@ -9,6 +9,15 @@ followed as far as the images see it. Two tracks that land on the same point
 of the next image conflict: the better-correlated one continues, the other is
 split off there.
 
+Matching one way leaves the right image's template-worthy skin unmatched
+where that skin turns towards the right camera: the left view squeezes it. So
+each pair then grows back: the right image's own features that no match
+reached are matched into the left image from the matches around them
+(region growing with the right image's windows as templates). A match grown
+back completes a track that ended on its left point, or starts a track that
+goes on from the right image. Optionally, skin that the middle image of three
+does not see is grown across it, in the pair of the first and third.
+
 Tracks are returned as (T, K, 2) original pixel coordinates, NaN where a
 track has no observation.
 """
@@ -171,13 +180,7 @@ def _track_pair(k, pair, left, right, roi, fresh, tracks, corr, depth_bounds, cf
     xy_r = m["xy"][ok]
     rho = m["ncc"][ok]
     # conflicts: two tracks on one point of the right image; the better one continues
-    if len(xy_r) > 1:
-        pairs_close = cKDTree(xy_r).query_pairs(cfg.conflict_radius_px, output_type="ndarray")
-        if len(pairs_close):
-            loser = np.where(rho[pairs_close[:, 0]] >= rho[pairs_close[:, 1]], pairs_close[:, 1], pairs_close[:, 0])
-            keep = np.ones(len(xy_r), bool)
-            keep[loser] = False
-            idx, xy_r, rho = idx[keep], xy_r[keep], rho[keep]
+    xy_r, idx, rho = _drop_conflicts(xy_r, idx, rho, cfg.conflict_radius_px)
     tracks[ids[idx], k + 1] = pair.to_original("right", xy_r)
     corr[ids[idx], k] = rho
     figures = {"left": k, "right": k + 1, "roi_fraction": float(roi.mean()), "fresh_features": int(len(fresh)),
@@ -229,7 +232,9 @@ def _grow_skip_pair(k, pair, left, right, fresh, tracks, corr, cfg):
 
 
 def _drop_conflicts(xy_a, xy_b, rho, radius):
-    """Of two matches closer than ``radius`` in the first image, the better-correlated one stays."""
+    """Of two matches whose points ``xy_a`` are closer than ``radius``, the better-correlated (``rho``) one stays.
+
+    ``xy_b`` (their other points, or any array along them) is filtered alike."""
     if len(xy_a) > 1:
         close = cKDTree(xy_a).query_pairs(radius, output_type="ndarray")
         if len(close):
