@@ -61,7 +61,7 @@ class MatchingConfig:
     # 400 px; the tiny preset's 480 x 320 px images, whose pattern halving blurs away: under 100 px)
     sparse_level_min_radius: int = 150
     # seeds the pyramid's search rejects search again at full resolution. Paper scale, with growing back
-    # (tracking): arm C +0.1 points of coverage for 3.6 s, arm D +0.7 for 4.6 s (+0.2-0.8 without growing back)
+    # (tracking): arm C +0.1 points of coverage for 3.6 s, arm D +0.7 for 3.5 s (+0.2-0.8 without growing back)
     sparse_level_fallback: bool = False
     uniqueness: float = 0.9  # the second peak must stay below this fraction of the first
     dense_radius: int = 6  # px, stage-2 search either side of the predicted disparity

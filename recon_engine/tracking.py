@@ -50,8 +50,8 @@ class TrackingConfig:
     reverse_growing: bool = True
     # growing back only where the left window is at most this stretched against the right one (1: where the right
     # view is the wider one). Where the left view is the wider one the forward matching had the better template
-    # already; growing back there too gave arms C / D +0.7 / +0.6 points of coverage (paper scale, 1 s per arm),
-    # but on the tiny preset (2.1 mm pixels) two-ray points up to 3.2 mm off the skin (arm A)
+    # already; growing back there too gave arms C / D +0.7 / +0.6 points of coverage (paper scale, at most 0.5 s
+    # per arm), but on the tiny preset (2.1 mm pixels) two-ray points up to 3.2 mm off the skin (arm A)
     reverse_max_scale: float = 1.0
     # after pair k+1, k+2 the skin that images k and k+2 see but k+1 does not (hidden behind the subject's arm,
     # say) is grown from the tracks through all three into pair k, k+2 (longer baseline)
@@ -113,25 +113,32 @@ def track_images(images: list, cameras: list, depth_bounds, cfg: TrackingConfig 
     # matched: it fills the matching's single-threaded stretches. Pair k-1 grows back with image k's features,
     # prepared with pair k, before pair k's matching (its new tracks go on from image k); pair k-2, k grows once
     # image k has all its tracks
-    back, skips = None, []
+    back, skips = None, []  # skips[j]: pair j, j+2 (None when off), grown at step j+2
     for k, (prepared, skip) in enumerate(_in_order(prepare, K - 1, ahead=cores(cfg.matching.threads) > 1)):
         pair, fresh = prepared[0], prepared[4]
         if back is not None:
             # image k's features in pair k-1's rectification (the right image)
             features_k = back[0].to_rectified("right", pair.to_original("left", fresh))
             tracks, corr, pairs[k - 1]["grown_back"] = _grow_back(k - 1, *back, features_k, tracks, corr, cfg)
-        if len(skips) == 2 and skips[0] is not None:
-            tracks, corr, pairs[k - 2]["skip_grown"] = _grow_skip_pair(k - 2, *skips[0], tracks, corr, cfg)
-        skips = (skips + [skip])[-2:]
+        tracks, corr = _grow_waiting_skip(k - 2, skips, tracks, corr, pairs, cfg)
+        skips.append(skip)
         tracks, corr, figures, back = _track_pair(k, *prepared, tracks, corr, depth_bounds, cfg)
         pairs.append(figures)
     if back is not None:
         # the last image has no pair of its own: its features in the last pair's rectification
         tracks, corr, pairs[-1]["grown_back"] = _grow_back(K - 2, *back, features(back[0], "right", back[2], K - 1)[0],
                                                            tracks, corr, cfg)
-    if len(skips) == 2 and skips[0] is not None:
-        tracks, corr, pairs[K - 3]["skip_grown"] = _grow_skip_pair(K - 3, *skips[0], tracks, corr, cfg)
+    tracks, corr = _grow_waiting_skip(K - 3, skips, tracks, corr, pairs, cfg)
     return {"tracks": tracks, "ncc": corr, "pairs": pairs}
+
+
+def _grow_waiting_skip(j, skips, tracks, corr, pairs, cfg):
+    """Grows the prepared pair j, j+2 of ``skips`` (if any), records its figure and frees its images."""
+    if j < 0 or j >= len(skips) or skips[j] is None:
+        return tracks, corr
+    tracks, corr, pairs[j]["skip_grown"] = _grow_skip_pair(j, *skips[j], tracks, corr, cfg)
+    skips[j] = None
+    return tracks, corr
 
 
 def _in_order(fn, n: int, ahead: bool):
@@ -221,13 +228,11 @@ def _grow_skip_pair(k, pair, left, right, fresh, tracks, corr, cfg):
     new_left, new_right, rho = _drop_conflicts(new_left, new_right, rho, cfg.conflict_radius_px)
     if len(new_left) == 0:
         return tracks, corr, 0
-    # tracks that end in image k: a match that lands on one's point completes it
+    # tracks that end in image k: a match that lands on one's point completes it. The correlation of a k, k+2
+    # match stands in the first gap's column (no pair of its own)
     ending = np.nonzero(at_k & ~np.isfinite(tracks[:, k + 1, 0]) & ~at_k2)[0]
-    target = _landing(pair.to_rectified("left", tracks[ending, k]), new_left, ending, cfg.conflict_radius_px)
-    tracks, corr, target = _start_tracks(tracks, corr, target, k, pair.to_original("left", new_left))
-    tracks[target, k + 2] = pair.to_original("right", new_right)
-    # the correlation of a k, k+2 match stands in the first gap's column (no pair of its own)
-    corr[target, k] = rho
+    tracks, corr = _attach(tracks, corr, pair, k, k + 2, new_left, new_right, rho,
+                           pair.to_rectified("left", tracks[ending, k]), ending, cfg)
     return tracks, corr, int(len(new_left))
 
 
@@ -256,16 +261,25 @@ def _landing(track_xy, xy, track_ids, radius):
     return target
 
 
-def _start_tracks(tracks, corr, target, k, xy_k):
-    """New tracks (observed in image k at ``xy_k``) for the matches whose ``target`` is -1; returns the grown
-    arrays and every match's track id."""
-    K = tracks.shape[1]
+def _attach(tracks, corr, pair, k, k_other, xy_k, xy_other, rho, ending_xy, ending_ids, cfg):
+    """Matches of image k (``xy_k``, the pair's left image) and image ``k_other`` (``xy_other``, its right one),
+    rectified in ``pair``, into the tracks.
+
+    A match that lands on the image-k point ``ending_xy`` of a track of
+    ``ending_ids`` (as close as two conflicting tracks) completes it; the
+    others start new tracks. Returns the tracks and correlations (new arrays).
+    """
+    target = _landing(ending_xy, xy_k, ending_ids, cfg.conflict_radius_px)
     start = target < 0
+    K = tracks.shape[1]
     new = np.full((int(start.sum()), K, 2), np.nan)
-    new[:, k] = xy_k[start]
-    target = target.copy()
+    new[:, k] = pair.to_original("left", xy_k[start])
     target[start] = np.arange(len(tracks), len(tracks) + len(new))
-    return (np.concatenate([tracks, new]), np.concatenate([corr, np.full((len(new), K - 1), np.nan)]), target)
+    tracks = np.concatenate([tracks, new])
+    corr = np.concatenate([corr, np.full((len(new), K - 1), np.nan)])
+    tracks[target, k_other] = pair.to_original("right", xy_other)
+    corr[target, k] = rho
+    return tracks, corr
 
 
 def _grow_back(k, pair, left, right, xy, ids, idx, xy_r, fresh_right, tracks, corr, cfg):
@@ -293,11 +307,8 @@ def _grow_back(k, pair, left, right, xy, ids, idx, xy_r, fresh_right, tracks, co
     back_left, back_right, rho = _drop_conflicts(back_left[keep], back_right[keep], rho[keep], cfg.conflict_radius_px)
     if len(back_left) == 0:
         return tracks, corr, 0
-    # the left points of this pair's tracks that found no right point: a grown match that lands on one (as
-    # close as two tracks that conflict) completes it
+    # the left points of this pair's tracks that found no right point: a grown match that lands on one completes it
     unmatched = np.setdiff1d(np.arange(len(xy)), idx)
-    target = _landing(xy[unmatched], back_left, ids[unmatched], cfg.conflict_radius_px)
-    tracks, corr, target = _start_tracks(tracks, corr, target, k, pair.to_original("left", back_left))
-    tracks[target, k + 1] = pair.to_original("right", back_right)
-    corr[target, k] = rho
+    tracks, corr = _attach(tracks, corr, pair, k, k + 1, back_left, back_right, rho, xy[unmatched], ids[unmatched],
+                           cfg)
     return tracks, corr, int(len(back_left))

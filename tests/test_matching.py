@@ -227,4 +227,3 @@ def test_growing_back_from_the_wider_view_reaches_skin_that_the_squeezed_templat
     assert back[steep_back].mean() > v[steep_fwd].mean() + 0.2
     err = np.abs(g["xy"][v.sum():][back, 0] - (xy_wide[back, 0] - disparity(xy_wide[back, 0])))
     assert np.median(err) < 0.05 and err.max() < 1.0
-    print(v[steep_fwd].mean(), back[steep_back].mean(), np.median(err), err.max())

@@ -138,7 +138,8 @@ def test_skin_hidden_from_the_middle_camera_is_matched_across_it(torso_scenario,
     hidden = read_capture(tmp_path / "hidden", rig)
     cfg = ReconstructionConfig()
     without, _ = reconstruct_arm(hidden, rig, cal, "A", replace(cfg, tracking=replace(cfg.tracking, skip_pairs=False)))
-    surface, report = reconstruct_arm(hidden, rig, cal, "A", replace(cfg, tracking=replace(cfg.tracking, skip_pairs=True)))
+    across_cfg = replace(cfg, tracking=replace(cfg.tracking, skip_pairs=True))
+    surface, report = reconstruct_arm(hidden, rig, cal, "A", across_cfg)
 
     def across(s):
         """Points of the hidden strip (a window's half-width inside it) on rays from both sides of A3."""
