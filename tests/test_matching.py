@@ -227,3 +227,27 @@ def test_growing_back_from_the_wider_view_reaches_skin_that_the_squeezed_templat
     assert back[steep_back].mean() > v[steep_fwd].mean() + 0.2
     err = np.abs(g["xy"][v.sum():][back, 0] - (xy_wide[back, 0] - disparity(xy_wide[back, 0])))
     assert np.median(err) < 0.05 and err.max() < 1.0
+
+
+def test_the_template_blurred_to_a_squeezed_windows_detail_matches_it_more_often_and_closer():
+    # least-squares matching started near the true match, on skin that the right view squeezes to 0.23-0.39 of
+    # the template's width (each right pixel averages its footprint, as a sensor does)
+    left, right, disparity = _ramp_pair(0.8, integrate=True)
+    rng = np.random.default_rng(1)
+    xl = rng.uniform(215, 245, 1500)
+    xy = np.column_stack([xl, rng.uniform(20, 190, 1500)])
+    d = disparity(xl)
+    stretch = 1 - (disparity(xl + 1e-3) - disparity(xl - 1e-3)) / 2e-3
+    assert 0.2 < stretch.min() and stretch.max() < 0.4
+    true = np.column_stack([xl - d, xy[:, 1]])
+    start = true + rng.normal(0, 0.3, true.shape)
+
+    def refined(antialias_px):
+        r = least_squares_refine(left, right, xy, start, window=9, initial_scale=stretch, antialias_px=antialias_px)
+        good = r["converged"] & (r["rho"] >= 0.8) & (r["sigma"] <= 0.1)
+        return good, np.abs(r["xy"][:, 0] - true[:, 0])
+
+    plain, err_plain = refined(0.0)
+    good, err = refined(MatchingConfig().lsm_antialias_px or 0.6)
+    assert plain.mean() < 0.7 and good.mean() > 0.9
+    assert np.percentile(err[good], 95) < 0.8 * np.percentile(err_plain[plain], 95) and err[good].max() < 0.5
