@@ -248,6 +248,6 @@ def test_the_template_blurred_to_a_squeezed_windows_detail_matches_it_more_often
         return good, np.abs(r["xy"][:, 0] - true[:, 0])
 
     plain, err_plain = refined(0.0)
-    good, err = refined(MatchingConfig().lsm_antialias_px or 0.6)
+    good, err = refined(0.6)  # the synthetic ramp has no light diffused in the skin: less blur than the default
     assert plain.mean() < 0.7 and good.mean() > 0.9
     assert np.percentile(err[good], 95) < 0.8 * np.percentile(err_plain[plain], 95) and err[good].max() < 0.5
