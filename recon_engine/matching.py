@@ -98,8 +98,11 @@ class MatchingConfig:
     # steep skin. Paper scale, arm D, coverage / time of the arm: 4 rounds 84.0% / 30.6 s; 12: 85.9% / 35.2 s;
     # 40: 86.2% / 39.2 s. But the steep skin the later rounds reach pulls the registration off: tiny preset,
     # torso RMS 1.43 mm with 12 rounds (0.67 mm with 4); paper scale, with 12 rounds and growing's least-squares
-    # window at 11 px, the arms' mean position error 0.0196 mm (0.0106 mm before)
-    grow_passes: int = 4
+    # window at 11 px, the arms' mean position error 0.0196 mm (0.0106 mm before). Since the template is blurred to
+    # the squeezed view's detail (lsm_antialias_px) the later rounds reach much further into the steep skin:
+    # arms C / D 87.4 / 87.0% with 4 rounds, 89.1 / 88.4% with 8, 89.4 / 88.9% with 12, 89.5 / 89.0% with 16
+    # (one arm in a fresh process, arm D 15.2 s with 4, 15.4 s with 12, 16.2 s with 16)
+    grow_passes: int = 12
     grow_radius_px: float = 12.0  # matched points this close predict an unmatched point's disparity plane
     grow_min_neighbours: int = 4
     grow_search_px: int = 3  # columns searched either side of the predicted disparity
@@ -261,6 +264,8 @@ def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.n
 
 def _chunked(fn, n, chunk, threads=1, **arrays):
     """``fn`` over blocks of at most ``chunk`` of the length-``n`` arrays, in ``threads`` threads, concatenated."""
+    if n < 256:
+        threads = 1  # starting threads costs more than a few hundred points' work (region growing's later rounds)
     if threads > 1:
         chunk = max(1, min(chunk, -(-n // threads)))  # every thread gets a block
 
@@ -522,29 +527,30 @@ def grow_matches(left: np.ndarray, right: np.ndarray, xy: np.ndarray, xy_right: 
 def _grow(left, right, xy, reason, out_xy, out_ncc, cfg, prepared):
     """Rounds of region growing from the points with ``reason`` "" (see ``match_points``); new arrays returned."""
     reason, out_xy, out_ncc = reason.copy(), out_xy.copy(), out_ncc.copy()
+    valid = reason == ""
+    if valid.sum() < 3 or valid.all():
+        return reason, out_xy, out_ncc
+    # one tree of all the points for every round: a round's new matches are few, and rebuilding a tree of the
+    # matched ones cost more than the round's matching (paper scale, the later rounds: 16 of 30 ms)
+    tree = cKDTree(xy)
     fresh = None  # points matched in the last pass: only their neighbourhoods have anything new to offer
     for _ in range(cfg.grow_passes):
-        valid = reason == ""
-        if valid.sum() < 3 or valid.all():
+        if fresh is None:
+            todo = np.nonzero(~valid)[0]
+        else:
+            near = tree.query_ball_point(xy[fresh], r=cfg.grow_radius_px, return_sorted=False)
+            todo = np.unique(np.concatenate([np.asarray(i, dtype=np.int64) for i in near]))
+            todo = todo[~valid[todo]]
+        if len(todo) == 0:
             break
-        seeds = xy[valid]
-        d_seed = xy[valid, 0] - out_xy[valid, 0]
-        todo = np.nonzero(~valid)[0]
-        if fresh is not None:
-            near_fresh = cKDTree(xy[fresh]).query(xy[todo], k=1, distance_upper_bound=cfg.grow_radius_px)[0]
-            todo = todo[np.isfinite(near_fresh)]
-            if len(todo) == 0:
-                break
-        k = min(cfg.neighbours, len(seeds))
-        dist_s, nb = cKDTree(seeds).query(xy[todo], k=k, distance_upper_bound=cfg.grow_radius_px)
-        nb = nb.reshape(len(todo), -1)
-        enough = np.sum(np.isfinite(dist_s.reshape(len(todo), -1)), axis=1) >= cfg.grow_min_neighbours
+        nb = _matched_neighbours(tree, valid, xy, todo, cfg)
+        enough = np.sum(nb >= 0, axis=1) >= cfg.grow_min_neighbours
         todo, nb = todo[enough], nb[enough]
         if len(todo) == 0:
             break
         # missing neighbours (beyond the radius) repeat the nearest one: it adds nothing to the plane
-        nb = np.where(nb >= len(seeds), nb[:, :1], nb)
-        d_pred, grad, fit = _plane_fit(seeds, d_seed, nb, xy[todo])
+        nb = np.where(nb < 0, nb[:, :1], nb)
+        d_pred, grad, fit = _plane_fit(xy, xy[:, 0] - out_xy[:, 0], nb, xy[todo])
         scale, shear = _window_shape(grad)
         ok = fit & (scale >= cfg.grow_scale_range[0]) & (scale <= cfg.grow_scale_range[1]) & (np.abs(shear) <= 1.0)
         todo, d_pred, scale, shear = todo[ok], d_pred[ok], scale[ok], shear[ok]
@@ -559,9 +565,28 @@ def _grow(left, right, xy, reason, out_xy, out_ncc, cfg, prepared):
         if not won.any():
             break
         fresh = todo[won]
-        out_xy[todo[won]] = xy3[won]
-        out_ncc[todo[won]] = ncc3[won]
+        valid[fresh] = True
+        out_xy[fresh] = xy3[won]
+        out_ncc[fresh] = ncc3[won]
+        if valid.all():
+            break
     return reason, out_xy, out_ncc
+
+
+def _matched_neighbours(tree, valid, xy, todo, cfg) -> np.ndarray:
+    """The ``cfg.neighbours`` nearest matched points (``valid``) within ``cfg.grow_radius_px`` of each of the
+    points ``todo``: (len(todo), k) indices into ``xy``, nearest first, -1 where there are fewer."""
+    k = min(cfg.neighbours, int(valid.sum()))
+    # every point within the radius (the features' minimum spacing bounds how many there are), then the matched
+    span = min(len(xy), 64)
+    dist, idx = tree.query(xy[todo], k=span, distance_upper_bound=cfg.grow_radius_px)
+    dist, idx = dist.reshape(len(todo), -1), idx.reshape(len(todo), -1)
+    found = np.isfinite(dist)
+    matched = found & valid[np.where(found, idx, 0)]
+    # a stable sort puts the matched ones first, each still in order of distance
+    order = np.argsort(~matched, axis=1, kind="stable")[:, :k]
+    nb = np.take_along_axis(idx, order, axis=1)
+    return np.where(np.take_along_axis(matched, order, axis=1), nb, -1)
 
 
 def reason_counts(reason: np.ndarray) -> dict:
