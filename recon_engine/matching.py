@@ -655,6 +655,12 @@ def _projected_normal_equations(sd: np.ndarray, centred: np.ndarray, ridge: floa
     return sd, N
 
 
+def _antialias_sigma(scale, antialias_px):
+    """Blur (template px, Gaussian sigma along the rows) that brings a template to the detail of a right window
+    stretched by ``scale`` (< 1: squeezed); 0 where it is not squeezed."""
+    return antialias_px * np.sqrt(np.maximum(1.0 / np.maximum(scale, 0.1) ** 2 - 1.0, 0.0))
+
+
 def _template(left, xy_left, wide, scale, antialias_px, sampler=None):
     """Template windows (N, len(wide), len(wide)) of ``left`` at ``xy_left`` (offsets ``wide``, px), blurred along
     the rows where the right window is squeezed (stretch ``scale`` < 1; see ``least_squares_refine``).
@@ -665,7 +671,7 @@ def _template(left, xy_left, wide, scale, antialias_px, sampler=None):
     xs = xy_left[:, 0, None, None] + wide[None, None, :]
     ys = xy_left[:, 1, None, None] + wide[None, :, None]
     shape = (n, len(wide), len(wide))
-    sigma = antialias_px * np.sqrt(np.maximum(1.0 / np.maximum(scale, 0.1) ** 2 - 1.0, 0.0))
+    sigma = _antialias_sigma(scale, antialias_px)
     blur = sigma > 0.05
     if not blur.any():
         return sampler(left, np.broadcast_to(xs, shape), np.broadcast_to(ys, shape))
@@ -674,24 +680,28 @@ def _template(left, xy_left, wide, scale, antialias_px, sampler=None):
         rest = (~blur).sum()
         T[~blur] = sampler(left, np.broadcast_to(xs[~blur], (rest,) + shape[1:]),
                            np.broadcast_to(ys[~blur], (rest,) + shape[1:]))
-    idx = np.nonzero(blur)[0]
-    sigma = np.minimum(sigma[idx], 3.0)
-    r = int(np.ceil(3 * sigma.max()))
-    taps = np.arange(-r, r + 1, dtype=float)
-    g = np.exp(-0.5 * (taps[None, :] / sigma[:, None]) ** 2)
-    g = (g / g.sum(axis=1, keepdims=True)).astype(np.float32)
-    # the rows sampled r px wider either side, then each point's kernel along them
-    wider = np.arange(wide[0] - r, wide[-1] + r + 1, dtype=float)
-    wshape = (len(idx), len(wide), len(wider))
-    W = sampler(left, np.broadcast_to(xy_left[idx, 0, None, None] + wider[None, None, :], wshape),
-                np.broadcast_to(ys[idx], wshape))
-    T[idx] = np.einsum("nrck,nk->nrc", np.lib.stride_tricks.sliding_window_view(W, 2 * r + 1, axis=2), g)
+    sigma = np.minimum(sigma, 3.0)
+    # each point's kernel reaches 3 sigma: points grouped by its reach, so that a point's template does not depend
+    # on the other points in its block (matches exact to the bit however the points are split)
+    reach = np.ceil(3 * sigma).astype(int)
+    for r in np.unique(reach[blur]):
+        idx = np.nonzero(blur & (reach == r))[0]
+        taps = np.arange(-r, r + 1, dtype=float)
+        g = np.exp(-0.5 * (taps[None, :] / sigma[idx, None]) ** 2)
+        g = (g / g.sum(axis=1, keepdims=True)).astype(np.float32)
+        # the rows sampled r px wider either side, then each point's kernel along them
+        wider = np.arange(wide[0] - r, wide[-1] + r + 1, dtype=float)
+        wshape = (len(idx), len(wide), len(wider))
+        W = sampler(left, np.broadcast_to(xy_left[idx, 0, None, None] + wider[None, None, :], wshape),
+                    np.broadcast_to(ys[idx], wshape))
+        T[idx] = np.einsum("nrck,nk->nrc", np.lib.stride_tricks.sliding_window_view(W, 2 * r + 1, axis=2), g)
     return T
 
 
 def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, xy_right: np.ndarray,
                          window: int = 11, iterations: int = 8, shift_y: bool = True, initial_scale=1.0,
-                         initial_shear=0.0, prepared: tuple | None = None, antialias_px: float = 0.0) -> dict:
+                         initial_shear=0.0, prepared: tuple | None = None, antialias_px: float = 0.0,
+                         _again: bool = True) -> dict:
     """Adaptive least-squares matching (Gruen 1985) of windows already matched to about a pixel.
 
     The right window is an affine image of the left one along the row
@@ -818,4 +828,15 @@ def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarra
     # the shape may change from its start (the correlation's stretch and shear) by this much, no more
     converged = (active & (np.hypot(a0, b0) < 1.5) & (np.abs(s - s_start) < 0.6) & (np.abs(t - t_start) < 0.5)
                  & (gain > 0.2))
-    return {"xy": base + np.column_stack([a0, b0]), "sigma": sigma, "rho": rho, "converged": converged}
+    out = {"xy": base + np.column_stack([a0, b0]), "sigma": sigma, "rho": rho, "converged": converged}
+    if antialias_px > 0 and _again:
+        # the template's blur followed the starting stretch; where the solved one asks for a clearly different blur
+        # (a guessed start, or a plane's noise on unsqueezed skin) the point is solved again from there with it
+        redo = np.nonzero(converged & (np.abs(_antialias_sigma(s, antialias_px)
+                                               - _antialias_sigma(s_start, antialias_px)) > 0.1))[0]
+        if len(redo):
+            again = least_squares_refine(left, right, xy_left[redo], out["xy"][redo], window, iterations, shift_y,
+                                         s[redo], t[redo], corners_gradients, antialias_px, _again=False)
+            for key in out:
+                out[key][redo] = again[key]
+    return out
