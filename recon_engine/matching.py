@@ -87,10 +87,15 @@ class MatchingConfig:
     max_lsm_sigma_px: float = 0.1  # and this precise (x shift, 1-sigma)
     # px, an image's own blur (Gaussian sigma in its pixels: footprint, optics, resampling, light diffused in the
     # skin); least-squares matching blurs the template to a squeezed right window's detail by this (see
-    # least_squares_refine; 0: off). Paper scale, coverage / RMS of arms B, C, D: off 88.3 / 86.5 / 86.1%,
-    # 0.039 / 0.038 / 0.037 mm; 0.6 px: C 87.2%, 0.036 mm; 0.9 px: 89.4 / 87.4 / 87.0%, 0.032 / 0.034 / 0.032 mm;
-    # 1.2 px: C 87.5%, 0.035 mm; 1.5 px: C 87.2%, 0.042 mm
-    lsm_antialias_px: float = 0.9
+    # least_squares_refine; 0: off). Paper scale, 4 growing rounds, coverage / RMS of arms B, C, D: off 88.3 / 86.5
+    # / 86.1%, 0.039 / 0.038 / 0.037 mm; 0.6 px: C 87.2%, 0.036 mm; 0.9 px: 89.4 / 87.4 / 87.0%, 0.032 / 0.034 /
+    # 0.032 mm; 1.2 px: C 87.5%, 0.035 mm; 1.5 px: C 87.2%, 0.042 mm. More than the images hold misleads it: the
+    # tiny preset's pixels are 6 times the paper's, the light diffused in the skin a sixth of a pixel there, and
+    # 0.9 px put a two-ray point 5.8 mm off the skin of its arm B (0.7 px: 2.8 mm, as good as off: 2.1 mm). A rig's
+    # real blur is not known this well: 0.7 px (paper scale, 12 rounds: arms C / D 89.3 / 88.6% against 89.4 /
+    # 88.8% with 0.9, RMS 0.035 / 0.033 mm against 0.034 / 0.032). Choosing it per pair by least-squares
+    # matching's median precision on a sample of squeezed windows picked 0.9 on both scales: not a guard
+    lsm_antialias_px: float = 0.7
     # the same for the correlation searches' templates: arm C 87.2% with 0.6 px against 87.2% without, not used
     ncc_antialias_px: float = 0.0
     # stage 3, region growing from the matched points (see match_points)
