@@ -104,7 +104,7 @@ class MatchingConfig:
     # 40: 86.2% / 39.2 s. But the steep skin the later rounds reach pulls the registration off: tiny preset,
     # torso RMS 1.43 mm with 12 rounds (0.67 mm with 4); paper scale, with 12 rounds and growing's least-squares
     # window at 11 px, the arms' mean position error 0.0196 mm (0.0106 mm before). Since the template is blurred to
-    # the squeezed view's detail (lsm_antialias_px) the later rounds reach much further into the steep skin:
+    # the squeezed view's detail (lsm_antialias_px, 0.9 px here) the later rounds reach much further into the steep skin:
     # arms C / D 87.4 / 87.0% with 4 rounds, 89.1 / 88.4% with 8, 89.4 / 88.9% with 12, 89.5 / 89.0% with 16
     # (one arm in a fresh process, arm D 15.2 s with 4, 15.4 s with 12, 16.2 s with 16)
     grow_passes: int = 12
