@@ -152,6 +152,37 @@ def sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return v
 
 
+def sample_grid(image: np.ndarray, xy: np.ndarray, off_x: np.ndarray, off_y: np.ndarray) -> np.ndarray:
+    """Exact bilinear samples (N, len(off_y), len(off_x)) float32 of ``image`` on grids of whole-pixel offsets
+    ``off_x``, ``off_y`` (consecutive integers) around points ``xy`` (N, 2); 0 outside, as ``sample``.
+
+    Every sample of a grid shares its point's fraction: one gather of each
+    point's patch of whole pixels, then four shifted slices weighted, about
+    three times faster than ``sample``'s four gathers per sample.
+    """
+    xy = np.asarray(xy, dtype=float)
+    h, w = image.shape
+    R, C = len(off_y), len(off_x)
+    x0 = np.floor(xy[:, 0]).astype(np.int64) + int(off_x[0])
+    y0 = np.floor(xy[:, 1]).astype(np.int64) + int(off_y[0])
+    inside = (x0 >= 0) & (y0 >= 0) & (x0 + C < w) & (y0 + R < h)
+    out = np.empty((len(xy), R, C), np.float32)
+    if not inside.all():
+        rest = ~inside
+        out[rest] = sample(image, xy[rest, 0, None, None] + off_x[None, None, :],
+                           xy[rest, 1, None, None] + off_y[None, :, None])
+    idx = np.nonzero(inside)[0]
+    if len(idx):
+        img = np.ascontiguousarray(image, dtype=np.float32)
+        patches = np.lib.stride_tricks.sliding_window_view(img, (R + 1, C + 1))[y0[idx], x0[idx]]
+        fx = (xy[idx, 0] - np.floor(xy[idx, 0])).astype(np.float32)[:, None, None]
+        fy = (xy[idx, 1] - np.floor(xy[idx, 1])).astype(np.float32)[:, None, None]
+        top = patches[:, :-1, :-1] * (1 - fx) + patches[:, :-1, 1:] * fx
+        bottom = patches[:, 1:, :-1] * (1 - fx) + patches[:, 1:, 1:] * fx
+        out[idx] = top * (1 - fy) + bottom * fy
+    return out
+
+
 def _box(a: np.ndarray, win: int) -> np.ndarray:
     """Sums over ``win``×``win`` windows of the last two axes of (N, R, C) strips (valid part).
 
@@ -667,39 +698,43 @@ def _antialias_sigma(scale, antialias_px):
 
 
 def _template(left, xy_left, wide, scale, antialias_px, sampler=None):
-    """Template windows (N, len(wide), len(wide)) of ``left`` at ``xy_left`` (offsets ``wide``, px), blurred along
-    the rows where the right window is squeezed (stretch ``scale`` < 1; see ``least_squares_refine``).
+    """Template windows (N, len(wide), len(wide)) of ``left`` at ``xy_left`` (whole-pixel offsets ``wide``, px),
+    blurred along the rows where the right window is squeezed (stretch ``scale`` < 1; see
+    ``least_squares_refine``).
 
-    ``sampler`` is ``sample`` (exact bilinear, the default) or ``sample_bilinear``."""
-    sampler = sampler or sample
+    ``sampler`` is None (exact bilinear samples, ``sample_grid``) or ``sample_bilinear``."""
     n = len(xy_left)
-    xs = xy_left[:, 0, None, None] + wide[None, None, :]
-    ys = xy_left[:, 1, None, None] + wide[None, :, None]
     shape = (n, len(wide), len(wide))
-    sigma = _antialias_sigma(scale, antialias_px)
+
+    def grid(idx, off_x):
+        if sampler is None:
+            return sample_grid(left, xy_left[idx], off_x, wide)
+        sh = (len(idx), len(wide), len(off_x))
+        return sampler(left, np.broadcast_to(xy_left[idx, 0, None, None] + off_x[None, None, :], sh),
+                       np.broadcast_to(xy_left[idx, 1, None, None] + wide[None, :, None], sh))
+
+    sigma = np.minimum(_antialias_sigma(scale, antialias_px), 3.0)
     blur = sigma > 0.05
     if not blur.any():
-        return sampler(left, np.broadcast_to(xs, shape), np.broadcast_to(ys, shape))
+        return grid(np.arange(n), wide)
     T = np.empty(shape, np.float32)
     if not blur.all():
-        rest = (~blur).sum()
-        T[~blur] = sampler(left, np.broadcast_to(xs[~blur], (rest,) + shape[1:]),
-                           np.broadcast_to(ys[~blur], (rest,) + shape[1:]))
-    sigma = np.minimum(sigma, 3.0)
+        T[~blur] = grid(np.nonzero(~blur)[0], wide)
     # each point's kernel reaches 3 sigma: points grouped by its reach, so that a point's template does not depend
     # on the other points in its block (matches exact to the bit however the points are split)
     reach = np.ceil(3 * sigma).astype(int)
+    C = len(wide)
     for r in np.unique(reach[blur]):
         idx = np.nonzero(blur & (reach == r))[0]
         taps = np.arange(-r, r + 1, dtype=float)
         g = np.exp(-0.5 * (taps[None, :] / sigma[idx, None]) ** 2)
         g = (g / g.sum(axis=1, keepdims=True)).astype(np.float32)
-        # the rows sampled r px wider either side, then each point's kernel along them
-        wider = np.arange(wide[0] - r, wide[-1] + r + 1, dtype=float)
-        wshape = (len(idx), len(wide), len(wider))
-        W = sampler(left, np.broadcast_to(xy_left[idx, 0, None, None] + wider[None, None, :], wshape),
-                    np.broadcast_to(ys[idx], wshape))
-        T[idx] = np.einsum("nrck,nk->nrc", np.lib.stride_tricks.sliding_window_view(W, 2 * r + 1, axis=2), g)
+        # the rows sampled r px wider either side, then each point's kernel along them, one tap at a time
+        W = grid(idx, np.arange(wide[0] - r, wide[-1] + r + 1, dtype=float))
+        acc = W[:, :, 0:C] * g[:, 0, None, None]
+        for k in range(1, 2 * r + 1):
+            acc += W[:, :, k:k + C] * g[:, k, None, None]
+        T[idx] = acc
     return T
 
 
