@@ -22,7 +22,10 @@ search honest and short:
 Each match has a subpixel peak (parabola fits across columns and rows), a
 minimum correlation, a uniqueness test (second peak against the first) and a
 left-right consistency check (the right point matched back must land on the
-left point).
+left point), then least-squares matching (affine along the row, with a
+radiometric gain and offset) refines it. Where the right view squeezes the
+skin, each of its pixels averages several of the template's: least-squares
+matching blurs the template along its rows to that detail first.
 
 All coordinates are rectified pixels (x = column, y = row).
 """
