@@ -96,21 +96,22 @@ class MatchingConfig:
     # / 86.1%, 0.039 / 0.038 / 0.037 mm; 0.6 px: C 87.2%, 0.036 mm; 0.9 px: 89.4 / 87.4 / 87.0%, 0.032 / 0.034 /
     # 0.032 mm; 1.2 px: C 87.5%, 0.035 mm; 1.5 px: C 87.2%, 0.042 mm. More than the images hold misleads it: the
     # tiny preset's pixels are 6 times the paper's, the light diffused in the skin a sixth of a pixel there, and
-    # 0.9 px put a two-ray point 5.8 mm off the skin of its arm B (0.7 px: 2.8 mm, as good as off: 2.1 mm). A rig's
-    # real blur is not known this well: 0.7 px (paper scale, 12 rounds: arms C / D 89.3 / 88.6% against 89.4 /
-    # 88.8% with 0.9, RMS 0.035 / 0.033 mm against 0.034 / 0.032). Choosing it per pair by least-squares
-    # matching's median precision on a sample of squeezed windows picked 0.9 on both scales: not a guard
+    # 0.9 px put a two-ray point 5.8 mm off the skin of its arm B (0.7 px: 2.8 mm; off: 2.1 mm). A rig's real
+    # blur is not known this well: 0.7 px (paper scale, 12 rounds: arms C / D 89.3 / 88.6% against 89.4 / 88.8%
+    # with 0.9, RMS 0.035 / 0.033 mm against 0.034 / 0.032). Choosing it per pair by least-squares matching's
+    # median precision on a sample of squeezed windows is no guard: that precision was best at 0.9 px on the tiny
+    # preset too (the three pairs of arms A, B with enough squeezed windows), and arm D at paper scale came out as
+    # with 0.9 px
     lsm_antialias_px: float = 0.7
-    # the same for the correlation searches' templates: arm C 87.2% with 0.6 px against 87.2% without, not used
-    ncc_antialias_px: float = 0.0
     # stage 3, region growing from the matched points (see match_points)
     # rounds (at most; growing stops when a round matches nothing new): each one reaches a little further into
     # steep skin. Paper scale, arm D, coverage / time of the arm: 4 rounds 84.0% / 30.6 s; 12: 85.9% / 35.2 s;
     # 40: 86.2% / 39.2 s. But the steep skin the later rounds reach pulls the registration off: tiny preset,
     # torso RMS 1.43 mm with 12 rounds (0.67 mm with 4); paper scale, with 12 rounds and growing's least-squares
     # window at 11 px, the arms' mean position error 0.0196 mm (0.0106 mm before). Since the template is blurred to
-    # the squeezed view's detail (lsm_antialias_px, 0.9 px here) the later rounds reach much further into the steep skin:
-    # arms C / D 87.4 / 87.0% with 4 rounds, 89.1 / 88.4% with 8, 89.4 / 88.9% with 12, 89.5 / 89.0% with 16
+    # the squeezed view's detail (lsm_antialias_px, 0.9 px here) the later rounds reach much further into the
+    # steep skin: arms C / D 87.4 / 87.0% with 4 rounds, 89.1 / 88.4% with 8, 89.4 / 88.9% with 12, 89.5 / 89.0%
+    # with 16
     # (one arm in a fresh process, arm D 15.2 s with 4, 15.4 s with 12, 16.2 s with 16). With growing's 16-px
     # neighbourhood (grow_radius_px) eight rounds reach as far: arm D 89.85% against 89.89% with 12
     grow_passes: int = 8
@@ -217,7 +218,7 @@ def _parabola(m, l, r):
 
 
 def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.ndarray, radius: int,
-               band: int, window: int, exclude: int = 2, scale=1.0, shear=0.0, antialias_px: float = 0.0) -> dict:
+               band: int, window: int, exclude: int = 2, scale=1.0, shear=0.0) -> dict:
     """Best NCC match of each left point in the right image around ``x_pred``.
 
     Parameters
@@ -244,9 +245,6 @@ def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.n
         Column shift of the right window per row below the point (px per
         row): a surface whose depth changes along the epipolar lines' normal
         appears sheared by this much.
-    antialias_px : float
-        Where ``scale`` < 1 the template is blurred along its rows to the
-        squeezed right window's detail (see ``least_squares_refine``).
 
     Returns ``{"xy": (N, 2) right points, "ncc": (N,), "second": (N,),
     "at_edge": (N,) bool}``; ``at_edge`` means the peak lies on the border of
@@ -255,13 +253,15 @@ def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.n
     h = window // 2
     n = len(xy)
     off = np.arange(-h, h + 1, dtype=float)
+    lx = xy[:, 0, None, None] + off[None, None, :]
+    ly = xy[:, 1, None, None] + off[None, :, None]
     # OpenCV's remap (1/32-px interpolation steps) is precise enough for a
     # correlation peak that least-squares matching refines afterwards
-    sc = np.broadcast_to(np.asarray(scale, dtype=float), (n,))
-    L = _template(left, np.asarray(xy, dtype=float), off, sc, antialias_px, sample_bilinear)
+    L = sample_bilinear(left, np.broadcast_to(lx, (n, window, window)), np.broadcast_to(ly, (n, window, window)))
     L = L - L.mean(axis=(1, 2), keepdims=True)
     Lnorm = np.sqrt(np.sum(L * L, axis=(1, 2)))
     x0 = np.round(x_pred)
+    sc = np.broadcast_to(np.asarray(scale, dtype=float), (n,))
     sh = np.broadcast_to(np.asarray(shear, dtype=float), (n,))
     cols = np.arange(-radius - h, radius + h + 1, dtype=float)
     rows = np.arange(-band - h, band + h + 1, dtype=float)
@@ -335,7 +335,7 @@ def _search(left, right, xy, x_pred, radius, band, window, cfg, scale=1.0, shear
     scale = np.broadcast_to(np.asarray(scale, dtype=float), (n,)).copy()
     shear = np.broadcast_to(np.asarray(shear, dtype=float), (n,)).copy()
     return _chunked(lambda **a: ncc_search(left, right, a["xy"], a["x_pred"], radius, band, window, scale=a["scale"],
-                                           shear=a["shear"], antialias_px=cfg.ncc_antialias_px),
+                                           shear=a["shear"]),
                     n, max(16, cfg.search_block // ((2 * band + window) * (2 * radius + window))), cores(cfg.threads),
                     xy=xy, x_pred=x_pred, scale=scale, shear=shear)
 
@@ -707,29 +707,17 @@ def _antialias_sigma(scale, antialias_px):
     return antialias_px * np.sqrt(np.maximum(1.0 / np.maximum(scale, 0.1) ** 2 - 1.0, 0.0))
 
 
-def _template(left, xy_left, wide, scale, antialias_px, sampler=None):
-    """Template windows (N, len(wide), len(wide)) of ``left`` at ``xy_left`` (whole-pixel offsets ``wide``, px),
-    blurred along the rows where the right window is squeezed (stretch ``scale`` < 1; see
-    ``least_squares_refine``).
-
-    ``sampler`` is None (exact bilinear samples, ``sample_grid``) or ``sample_bilinear``."""
-    n = len(xy_left)
-    shape = (n, len(wide), len(wide))
-
-    def grid(idx, off_x):
-        if sampler is None:
-            return sample_grid(left, xy_left[idx], off_x, wide)
-        sh = (len(idx), len(wide), len(off_x))
-        return sampler(left, np.broadcast_to(xy_left[idx, 0, None, None] + off_x[None, None, :], sh),
-                       np.broadcast_to(xy_left[idx, 1, None, None] + wide[None, :, None], sh))
-
+def _template(left, xy_left, wide, scale, antialias_px):
+    """Template windows (N, len(wide), len(wide)) of ``left`` at ``xy_left`` (whole-pixel offsets ``wide``, px;
+    exact bilinear samples), blurred along the rows where the right window is squeezed (stretch ``scale`` < 1;
+    see ``least_squares_refine``)."""
     sigma = np.minimum(_antialias_sigma(scale, antialias_px), 3.0)
     blur = sigma > 0.05
     if not blur.any():
-        return grid(np.arange(n), wide)
-    T = np.empty(shape, np.float32)
+        return sample_grid(left, xy_left, wide, wide)
+    T = np.empty((len(xy_left), len(wide), len(wide)), np.float32)
     if not blur.all():
-        T[~blur] = grid(np.nonzero(~blur)[0], wide)
+        T[~blur] = sample_grid(left, xy_left[~blur], wide, wide)
     # each point's kernel reaches 3 sigma: points grouped by its reach, so that a point's template does not depend
     # on the other points in its block (matches exact to the bit however the points are split)
     reach = np.ceil(3 * sigma).astype(int)
@@ -740,7 +728,7 @@ def _template(left, xy_left, wide, scale, antialias_px, sampler=None):
         g = np.exp(-0.5 * (taps[None, :] / sigma[idx, None]) ** 2)
         g = (g / g.sum(axis=1, keepdims=True)).astype(np.float32)
         # the rows sampled r px wider either side, then each point's kernel along them, one tap at a time
-        W = grid(idx, np.arange(wide[0] - r, wide[-1] + r + 1, dtype=float))
+        W = sample_grid(left, xy_left[idx], np.arange(wide[0] - r, wide[-1] + r + 1, dtype=float), wide)
         acc = W[:, :, 0:C] * g[:, 0, None, None]
         for k in range(1, 2 * r + 1):
             acc += W[:, :, k:k + C] * g[:, k, None, None]
