@@ -576,21 +576,27 @@ def _grow(left, right, xy, reason, out_xy, out_ncc, cfg, prepared):
     valid = reason == ""
     if valid.sum() < 3 or valid.all():
         return reason, out_xy, out_ncc
-    # one tree of all the points for every round: a round's new matches are few, and rebuilding a tree of the
-    # matched ones cost more than the round's matching (paper scale, the later rounds: 16 of 30 ms)
-    tree = cKDTree(xy)
-    fresh = None  # points matched in the last pass: only their neighbourhoods have anything new to offer
+    # the matched points in two k-d trees: those at the start, built once, and those matched since, a small tree
+    # rebuilt each round (a round's new matches are few: rebuilding one tree of all matched points each round
+    # cost more than the later rounds' matching)
+    start = np.nonzero(valid)[0]
+    start_tree = cKDTree(xy[start])
+    since = np.zeros(0, np.int64)
+    fresh = None  # points matched in the last round: only their neighbourhoods have anything new to offer
     for _ in range(cfg.grow_passes):
-        if fresh is None:
-            todo = np.nonzero(~valid)[0]
-        else:
-            near = tree.query_ball_point(xy[fresh], r=cfg.grow_radius_px, return_sorted=False)
-            todo = np.unique(np.concatenate([np.asarray(i, dtype=np.int64) for i in near]))
-            todo = todo[~valid[todo]]
+        todo = np.nonzero(~valid)[0]
+        if fresh is not None:
+            # the unmatched points within reach of a new match (a hair further than the neighbours' bound)
+            d, _ = cKDTree(xy[fresh]).query(xy[todo], k=1, distance_upper_bound=cfg.grow_radius_px * (1 + 1e-9))
+            todo = todo[np.isfinite(d)]
         if len(todo) == 0:
             break
-        nb = _matched_neighbours(tree, valid, xy, todo, cfg)
+        nb = _matched_neighbours(start_tree, start, since, xy, todo, cfg)
         enough = np.sum(nb >= 0, axis=1) >= cfg.grow_min_neighbours
+        if fresh is not None:
+            # a point whose nearest matched neighbours are the last round's set again would be predicted, searched
+            # and rejected as then: only those a new match joined are tried again (exactly the same result)
+            enough &= np.isin(nb, fresh).any(axis=1)
         todo, nb = todo[enough], nb[enough]
         if len(todo) == 0:
             break
@@ -611,6 +617,7 @@ def _grow(left, right, xy, reason, out_xy, out_ncc, cfg, prepared):
         if not won.any():
             break
         fresh = todo[won]
+        since = np.concatenate([since, fresh])
         valid[fresh] = True
         out_xy[fresh] = xy3[won]
         out_ncc[fresh] = ncc3[won]
@@ -619,20 +626,28 @@ def _grow(left, right, xy, reason, out_xy, out_ncc, cfg, prepared):
     return reason, out_xy, out_ncc
 
 
-def _matched_neighbours(tree, valid, xy, todo, cfg) -> np.ndarray:
-    """The ``cfg.neighbours`` nearest matched points (``valid``) within ``cfg.grow_radius_px`` of each of the
-    points ``todo``: (len(todo), k) indices into ``xy``, nearest first, -1 where there are fewer."""
-    k = min(cfg.neighbours, int(valid.sum()))
-    # every point within the radius (the features' minimum spacing bounds how many there are), then the matched
-    span = min(len(xy), 64)
-    dist, idx = tree.query(xy[todo], k=span, distance_upper_bound=cfg.grow_radius_px)
-    dist, idx = dist.reshape(len(todo), -1), idx.reshape(len(todo), -1)
-    found = np.isfinite(dist)
-    matched = found & valid[np.where(found, idx, 0)]
-    # a stable sort puts the matched ones first, each still in order of distance
-    order = np.argsort(~matched, axis=1, kind="stable")[:, :k]
-    nb = np.take_along_axis(idx, order, axis=1)
-    return np.where(np.take_along_axis(matched, order, axis=1), nb, -1)
+def _matched_neighbours(start_tree, start, since, xy, todo, cfg) -> np.ndarray:
+    """The ``cfg.neighbours`` nearest matched points within ``cfg.grow_radius_px`` of each of the points ``todo``:
+    (len(todo), k) indices into ``xy``, nearest first, -1 where there are fewer.
+
+    The matched points are ``start`` (indices into ``xy``; ``start_tree`` their k-d tree) and ``since``.
+    """
+    k = min(cfg.neighbours, len(start) + len(since))
+    q = xy[todo]
+    dist, idx = [], []
+    for ids, tree in ((start, start_tree), (since, cKDTree(xy[since]) if len(since) else None)):
+        if tree is None or len(ids) == 0:
+            continue
+        kk = min(k, len(ids))
+        d, i = tree.query(q, k=kk, distance_upper_bound=cfg.grow_radius_px)
+        d, i = d.reshape(len(q), kk), i.reshape(len(q), kk)
+        dist.append(d)
+        idx.append(np.where(np.isfinite(d), ids[np.minimum(i, len(ids) - 1)], -1))
+    dist, idx = np.concatenate(dist, axis=1), np.concatenate(idx, axis=1)
+    if len(dist) and dist.shape[1] > k:
+        order = np.argsort(dist, axis=1, kind="stable")[:, :k]  # missing ones (inf) last
+        idx = np.take_along_axis(idx, order, axis=1)
+    return idx
 
 
 def reason_counts(reason: np.ndarray) -> dict:
