@@ -145,6 +145,28 @@ def test_region_growing_follows_steep_skin():
     assert np.all(np.abs(m["xy"][grown, 1] - xy[grown, 1]) < 0.2)
 
 
+def test_growing_takes_each_points_nearest_matched_neighbours_within_its_radius():
+    from scipy.spatial import cKDTree
+
+    from recon_engine.matching import _matched_neighbours
+
+    rng = np.random.default_rng(7)
+    xy = rng.uniform(0, 200, (3000, 2))
+    matched = rng.random(3000) < 0.4
+    start = np.nonzero(matched & (rng.random(3000) < 0.7))[0]  # matched before growing
+    since = np.setdiff1d(np.nonzero(matched)[0], start)  # matched by its rounds
+    todo = np.nonzero(~matched)[0]
+    cfg = MatchingConfig(grow_radius_px=9.0, neighbours=8)
+    nb = _matched_neighbours(cKDTree(xy[start]), start, since, xy, todo, cfg)
+    # brute force: every matched point's distance, the nearest 8 within the radius, nearest first
+    d = np.linalg.norm(xy[todo, None] - xy[None, matched], axis=2)
+    ids = np.nonzero(matched)[0]
+    order = np.argsort(d, axis=1, kind="stable")[:, :8]
+    want = np.where(np.take_along_axis(d, order, axis=1) <= 9.0, ids[order], -1)
+    assert (want == -1).any() and (want >= 0).all(axis=1).any()  # both cases occur
+    assert np.array_equal(nb, want)
+
+
 def test_stage_two_stretches_the_window_as_its_anchors_predict():
     left, right, disparity = _ramp_pair(0.3)
     rng = np.random.default_rng(4)
