@@ -4,7 +4,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from recon_engine.surface import flank_faces, make_surface, small_components
+from recon_engine.surface import flank_faces, make_surface, off_surface, off_surface_again, small_components
 
 
 def _arc_cameras(n=5, radius=2500.0, spacing=800.0):
@@ -67,3 +67,19 @@ def test_it_adds_nothing_when_the_tin_holds_every_point():
     surface = make_surface(P, cams)
     assert len(np.unique(surface.faces)) == len(P)
     assert flank_faces(surface.points, surface.faces, cams).shape == (0, 3)
+
+
+def test_a_point_whose_wrong_neighbours_were_dropped_is_tested_again_against_the_skin():
+    rng = np.random.default_rng(3)
+    g = np.arange(0, 60, 1.5)
+    skin = np.column_stack([*(a.ravel() for a in np.meshgrid(g, g)), rng.normal(0, 0.02, len(g) ** 2)])
+    # wrong matches that agree with each other, 7 mm off the skin: each one's neighbours are the others
+    wrong = np.column_stack([30 + rng.normal(0, 0.4, (14, 2)), 7 + rng.normal(0, 0.02, 14)])
+    points = np.concatenate([skin, wrong])
+    first = off_surface(points, details=True)
+    assert not first["off"][len(skin):].any()  # their own plane: the first test cannot see them
+    # the island of wrong matches dropped but one (joined to the skin by a flank's patch, say)
+    kept = np.concatenate([np.arange(len(skin)), [len(skin)]])
+    last = len(kept) - 1
+    again = off_surface_again(points[kept], np.array([last, 0, 100]), first["limits"])
+    assert again.tolist() == [True, False, False]
