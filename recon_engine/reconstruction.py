@@ -28,8 +28,7 @@ from .parallel import cores, reuse_freed_images
 from .registration import (ICPatchConfig, Transform, chain_initial, multi_surface_registration, pair_fit,
                            patch_indices, weak_arms)
 from .surface import (PointSurface, flank_faces, in_patches, make_surface, off_surface, off_surface_again,
-                      small_components,
-                      subset)
+                      small_components, subset)
 from .matching import reason_counts
 from .tracking import TrackingConfig, track_images
 

@@ -57,7 +57,7 @@ class TrackingConfig:
     # say, or seen too obliquely by k+1 to match) is grown from the tracks through all three into pair k, k+2
     # (longer baseline). Paper scale, before eight growing rounds: arm D +0.3 points of coverage, arm C none, for
     # 2 s per arm. With eight rounds (each growing further from the skin the three images share), coverage of arms
-    # A-D 93.5 / 92.1 / 90.35 / 89.6% without, 93.6 / 92.3 / 90.6 / 90.5% with, RMS 0.001-0.0005 mm lower, for
+    # A-D 93.5 / 92.1 / 90.35 / 89.6% without, 93.6 / 92.3 / 90.6 / 90.5% with, RMS 0.0002-0.0004 mm lower, for
     # 2.5-4 s per arm on a machine that takes 22-25 s for one (about 11%)
     skip_pairs: bool = True
     skip_grow_passes: int = 8  # rounds of that growing (see MatchingConfig.grow_passes)
