@@ -40,6 +40,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .imaging import sample_bilinear
+from .kernels import lsm_points, ncc_points
 from .parallel import cores
 
 
@@ -132,89 +133,22 @@ class MatchingConfig:
     # (least-squares matching started at the true match, paper scale, skin seen 60-70 deg off its normal:
     # 78% converged within 0.1 px with 7 px, 94% with 11 px; 70-78 deg: 40% and 72%)
     grow_window: int = 11
-    chunk: int = 4000  # points per vectorized block of least-squares matching (memory)
-    # right-image samples per block of the correlation search: its window loop passes over the block's strips
-    # once per window pixel, so blocks that stay in the core's cache run faster (synthetic pair, 7-px window,
-    # 13 x 5 positions: 11.5-14 us per point in blocks of 2000 points, 25-30 us in blocks of 9877)
-    search_block: int = 400_000
-    # blocks run in this many threads (numpy and OpenCV release the GIL in the array work); 0: one per core
+    chunk: int = 4000  # points per block of least-squares matching (the blocks are shared out to the threads)
+    # points per block of the correlation search (recon_engine.kernels, one point at a time): the blocks are
+    # shared out to the threads
+    search_chunk: int = 2000
+    # blocks run in this many threads (numba, numpy and OpenCV release the GIL); 0: one per core
     threads: int = 0
 
 
-def sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Exact bilinear samples (float32) of ``image`` at float positions; 0 outside.
-
-    OpenCV's remap would step positions by 1/32 px, too coarse for least-squares matching.
-    """
-    x = np.asarray(x, dtype=float)
-    y = np.asarray(y, dtype=float)
-    h, w = image.shape
-    x0 = np.floor(x).astype(np.int64)
-    y0 = np.floor(y).astype(np.int64)
-    # float32 weights: 1e-7 relative, far below the 1e-3 px the refinement resolves
-    fx = (x - x0).astype(np.float32)
-    fy = (y - y0).astype(np.float32)
-    inside = (x0 >= 0) & (y0 >= 0) & (x0 < w - 1) & (y0 < h - 1)
-    i = np.clip(y0, 0, h - 2) * w + np.clip(x0, 0, w - 2)
-    flat = np.asarray(image, dtype=np.float32).ravel()
-    v = (flat[i] * ((1 - fx) * (1 - fy)) + flat[i + 1] * (fx * (1 - fy)) + flat[i + w] * ((1 - fx) * fy)
-         + flat[i + w + 1] * (fx * fy))
-    v[~inside] = 0
-    return v
-
-
-def sample_grid(image: np.ndarray, xy: np.ndarray, off_x: np.ndarray, off_y: np.ndarray) -> np.ndarray:
-    """Exact bilinear samples (N, len(off_y), len(off_x)) float32 of ``image`` on grids of whole-pixel offsets
-    ``off_x``, ``off_y`` (consecutive integers) around points ``xy`` (N, 2); 0 outside, as ``sample``.
-
-    Every sample of a grid shares its point's fraction: one gather of each
-    point's patch of whole pixels, then four shifted slices weighted, about
-    three times faster than ``sample``'s four gathers per sample.
-    """
-    xy = np.asarray(xy, dtype=float)
-    h, w = image.shape
-    R, C = len(off_y), len(off_x)
-    x0 = np.floor(xy[:, 0]).astype(np.int64) + int(off_x[0])
-    y0 = np.floor(xy[:, 1]).astype(np.int64) + int(off_y[0])
-    inside = (x0 >= 0) & (y0 >= 0) & (x0 + C < w) & (y0 + R < h)
-    out = np.empty((len(xy), R, C), np.float32)
-    if not inside.all():
-        rest = ~inside
-        out[rest] = sample(image, xy[rest, 0, None, None] + off_x[None, None, :],
-                           xy[rest, 1, None, None] + off_y[None, :, None])
-    idx = np.nonzero(inside)[0]
-    if len(idx):
-        img = np.ascontiguousarray(image, dtype=np.float32)
-        patches = np.lib.stride_tricks.sliding_window_view(img, (R + 1, C + 1))[y0[idx], x0[idx]]
-        fx = (xy[idx, 0] - np.floor(xy[idx, 0])).astype(np.float32)[:, None, None]
-        fy = (xy[idx, 1] - np.floor(xy[idx, 1])).astype(np.float32)[:, None, None]
-        top = patches[:, :-1, :-1] * (1 - fx) + patches[:, :-1, 1:] * fx
-        bottom = patches[:, 1:, :-1] * (1 - fx) + patches[:, 1:, 1:] * fx
-        out[idx] = top * (1 - fy) + bottom * fy
-    return out
-
-
-def _box(a: np.ndarray, win: int) -> np.ndarray:
-    """Sums over ``win``×``win`` windows of the last two axes of (N, R, C) strips (valid part).
-
-    The strips are stacked into one tall image for OpenCV's integral image; the
-    windows read never straddle two strips. The running sums (float64) are
-    exact when every value is a multiple of 2^-16 below 2^17 in a block of
-    fewer than 2^19 values (see ``ncc_search``): a strip's sums then do not
-    depend on the strips stacked above it.
-    """
-    n, R, C = a.shape
-    integ = cv2.integral(np.ascontiguousarray(a, dtype=np.float32).reshape(n * R, C), sdepth=cv2.CV_64F)
-    top = (np.arange(n)[:, None] * R + np.arange(R - win + 1)[None, :])  # (n, B)
-    bottom = top + win
-    It, Ib = integ[top], integ[bottom]  # (n, B, C + 1)
-    return (Ib[..., win:] - Ib[..., :-win] - It[..., win:] + It[..., :-win]).astype(np.float32)
-
-
-def _parabola(m, l, r):
-    den = l - 2 * m + r
-    off = np.where(den < 0, 0.5 * (l - r) / np.where(den < 0, den, -1), 0.0)
-    return np.clip(off, -0.5, 0.5)
+def _kernel_array(a, dtype, shape=None) -> np.ndarray:
+    """``a`` as the compiled kernels take it: C-contiguous, writable (numba compiles read-only arrays, such as
+    numpy's broadcast views, separately), of ``dtype``, broadcast to ``shape``; a copy only where needed."""
+    a = np.asarray(a, dtype=dtype)
+    if shape is not None:
+        a = a.reshape(shape) if a.size == np.prod(shape) else np.broadcast_to(a, shape)
+    a = np.ascontiguousarray(a)
+    return a if a.flags.writeable else a.copy()
 
 
 def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.ndarray, radius: int,
@@ -250,64 +184,12 @@ def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.n
     "at_edge": (N,) bool}``; ``at_edge`` means the peak lies on the border of
     the searched range, so the true peak may lie outside it.
     """
-    h = window // 2
     n = len(xy)
-    off = np.arange(-h, h + 1, dtype=float)
-    lx = xy[:, 0, None, None] + off[None, None, :]
-    ly = xy[:, 1, None, None] + off[None, :, None]
-    # OpenCV's remap (1/32-px interpolation steps) is precise enough for a
-    # correlation peak that least-squares matching refines afterwards
-    L = sample_bilinear(left, np.broadcast_to(lx, (n, window, window)), np.broadcast_to(ly, (n, window, window)))
-    L = L - L.mean(axis=(1, 2), keepdims=True)
-    Lnorm = np.sqrt(np.sum(L * L, axis=(1, 2)))
-    x0 = np.round(x_pred)
-    sc = np.broadcast_to(np.asarray(scale, dtype=float), (n,))
-    sh = np.broadcast_to(np.asarray(shear, dtype=float), (n,))
-    cols = np.arange(-radius - h, radius + h + 1, dtype=float)
-    rows = np.arange(-band - h, band + h + 1, dtype=float)
-    sx = x0[:, None, None] + sc[:, None, None] * cols[None, None, :] + sh[:, None, None] * rows[None, :, None]
-    sy = xy[:, 1, None, None] + rows[None, :, None]
-    S = sample_bilinear(right, np.broadcast_to(sx, (n, len(rows), len(cols))),
-                        np.broadcast_to(sy, (n, len(rows), len(cols))))
-    S = S - S.mean(axis=(1, 2), keepdims=True)
-    # on a grid of 1/256 grey level (far below the sensor's noise) every window sum of the strips and of their
-    # squares is exact in float64: a point's correlations come out the same to the last bit however the points
-    # are split into blocks and threads (worker processes of one thread and a service of two agree exactly)
-    S = np.round(S * 256.0) / 256.0
-    B, D = 2 * band + 1, 2 * radius + 1
-    num = np.zeros((n, B, D), np.float32)
-    product = np.empty_like(num)  # one buffer for every step's product (the same sums, 17% faster)
-    # loop over the window's offsets (not the points): each step is one array operation
-    for i in range(window):
-        for j in range(window):
-            np.multiply(S[:, i:i + B, j:j + D], L[:, i, j, None, None], out=product)
-            num += product
-    s1 = _box(S, window)
-    s2 = _box(S * S, window)
-    var = np.maximum(s2 - s1 * s1 / window ** 2, 0)
-    den = Lnorm[:, None, None] * np.sqrt(var)
-    ncc = np.where(den > 1e-6, num / np.maximum(den, 1e-12), -1.0)
-    flat = ncc.reshape(n, -1)
-    k = np.argmax(flat, axis=1)
-    kb, kd = np.divmod(k, D)
-    best = flat[np.arange(n), k]
-    # second peak: the best column at least ``exclude`` away from the first, any row
-    colmax = ncc.max(axis=1)
-    far = np.abs(np.arange(D)[None, :] - kd[:, None]) > exclude
-    second = np.where(far, colmax, -1.0).max(axis=1)
-    at_edge = (kd == 0) | (kd == D - 1)
-    idx = np.arange(n)
-    kd_in = np.clip(kd, 1, D - 2)
-    dx = _parabola(best, ncc[idx, kb, kd_in - 1], ncc[idx, kb, kd_in + 1])
-    dx = np.where(at_edge, 0.0, dx)
-    if band > 0:
-        kb_in = np.clip(kb, 1, B - 2)
-        dy = _parabola(best, ncc[idx, kb_in - 1, kd], ncc[idx, kb_in + 1, kd])
-        dy = np.where((kb == 0) | (kb == B - 1), 0.0, dy)
-    else:
-        dy = np.zeros(n)
-    out = np.column_stack([x0 + sc * (kd + dx - radius) + sh * (kb + dy - band), xy[:, 1] - band + kb + dy])
-    return {"xy": out, "ncc": best.astype(float), "second": second.astype(float), "at_edge": at_edge}
+    out, best, second, at_edge = ncc_points(_kernel_array(left, np.float32), _kernel_array(right, np.float32),
+                                            _kernel_array(xy, float, (n, 2)), _kernel_array(np.round(x_pred), float, (n,)),
+                                            _kernel_array(scale, float, (n,)), _kernel_array(shear, float, (n,)),
+                                            int(radius), int(band), int(window), int(exclude))
+    return {"xy": out, "ncc": best, "second": second, "at_edge": at_edge}
 
 
 def _chunked(fn, n, chunk, threads=1, **arrays):
@@ -338,7 +220,7 @@ def _search(left, right, xy, x_pred, radius, band, window, cfg, scale=1.0, shear
     shear = np.broadcast_to(np.asarray(shear, dtype=float), (n,)).copy()
     return _chunked(lambda **a: ncc_search(left, right, a["xy"], a["x_pred"], radius, band, window, scale=a["scale"],
                                            shear=a["shear"]),
-                    n, max(16, cfg.search_block // ((2 * band + window) * (2 * radius + window))), cores(cfg.threads),
+                    n, cfg.search_chunk, cores(cfg.threads),
                     xy=xy, x_pred=x_pred, scale=scale, shear=shear)
 
 
@@ -419,7 +301,7 @@ def _plane_fit(anchors, d_anchor, nb, xy, max_cond: float = 1e6):
     return sol[:, 0], sol[:, 1:], ok
 
 
-def _verify(left, right, xy, r, scale, shear, cfg, max_sigma_px=None, prepared=None, window=None):
+def _verify(left, right, xy, r, scale, shear, cfg, max_sigma_px=None, window=None):
     """Checks of NCC matches ``r`` of left points ``xy`` and their least-squares refinement.
 
     Returns ``(reason, xy_right, ncc)``: reason "" for an accepted match,
@@ -449,12 +331,10 @@ def _verify(left, right, xy, r, scale, shear, cfg, max_sigma_px=None, prepared=N
     out_ncc = np.asarray(r["ncc"], dtype=float).copy()
     if cfg.refine and valid.any():
         idx = np.nonzero(valid)[0]
-        if prepared is None:
-            prepared = least_squares_image(right)
         lsm_window = cfg.lsm_window or window
         lsm = _chunked(lambda **a: least_squares_refine(left, right, a["xy_left"], a["xy_right"], window=lsm_window,
                                                         initial_scale=a["scale"], initial_shear=a["shear"],
-                                                        prepared=prepared, antialias_px=cfg.lsm_antialias_px),
+                                                        antialias_px=cfg.lsm_antialias_px),
                        len(idx), cfg.chunk * 2, cores(cfg.threads), xy_left=xy[idx], xy_right=r["xy"][idx],
                        scale=np.ascontiguousarray(scale[idx]), shear=np.ascontiguousarray(shear[idx]))
         limit = cfg.max_lsm_sigma_px if max_sigma_px is None else max_sigma_px
@@ -537,16 +417,14 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
     # points far from every anchor have no prediction to trust: not verified (nor refined) at all
     far = np.asarray(dist).reshape(n, -1)[:, -1] > 6 * cfg.anchor_spacing
     near = np.nonzero(~far)[0]
-    prepared = least_squares_image(right) if cfg.refine else None
     reason[far] = "no reliable disparity in the neighbourhood"
     out_ncc = np.asarray(r2["ncc"], dtype=float).copy()
     reason[near], out_xy[near], out_ncc[near] = _verify(left, right, xy[near], {k: v[near] for k, v in r2.items()},
-                                                        r2["scale"][near], r2["shear"][near], cfg,
-                                                        prepared=prepared)
+                                                        r2["scale"][near], r2["shear"][near], cfg)
     # stage 3: region growing. Where the skin turns away from the cameras the disparity changes faster than
     # the anchors' planes follow, and the two views foreshorten it differently; the points matched so far
     # predict both (disparity, stretch and shear of the right window) right next to each unmatched point
-    reason, out_xy, out_ncc = _grow(left, right, xy, reason, out_xy, out_ncc, cfg, prepared)
+    reason, out_xy, out_ncc = _grow(left, right, xy, reason, out_xy, out_ncc, cfg)
     valid = reason == ""
     return {"xy": out_xy, "ncc": out_ncc, "valid": valid, "reason": reason}
 
@@ -566,13 +444,12 @@ def grow_matches(left: np.ndarray, right: np.ndarray, xy: np.ndarray, xy_right: 
     known = np.isfinite(out_xy).all(axis=1)
     reason = np.where(known, "", "not reached").astype(object)
     out_ncc = np.where(known, np.nan, -1.0)
-    prepared = least_squares_image(right) if cfg.refine else None
-    reason, out_xy, out_ncc = _grow(left, right, xy, reason, out_xy, out_ncc, cfg, prepared)
+    reason, out_xy, out_ncc = _grow(left, right, xy, reason, out_xy, out_ncc, cfg)
     valid = reason == ""
     return {"xy": out_xy, "ncc": out_ncc, "valid": valid, "reason": reason}
 
 
-def _grow(left, right, xy, reason, out_xy, out_ncc, cfg, prepared):
+def _grow(left, right, xy, reason, out_xy, out_ncc, cfg):
     """Rounds of region growing from the points with ``reason`` "" (see ``match_points``); new arrays returned."""
     reason, out_xy, out_ncc = reason.copy(), out_xy.copy(), out_ncc.copy()
     valid = reason == ""
@@ -612,7 +489,7 @@ def _grow(left, right, xy, reason, out_xy, out_ncc, cfg, prepared):
             break
         r3 = _search(left, right, xy[todo], xy[todo, 0] - d_pred, cfg.grow_search_px, cfg.band, cfg.grow_window, cfg,
                      scale=scale, shear=shear)
-        why, xy3, ncc3 = _verify(left, right, xy[todo], r3, scale, shear, cfg, cfg.grow_max_lsm_sigma_px, prepared,
+        why, xy3, ncc3 = _verify(left, right, xy[todo], r3, scale, shear, cfg, cfg.grow_max_lsm_sigma_px,
                                  cfg.grow_window)
         won = why == ""
         reason[todo] = np.where(won, "", why)  # the last attempt's verdict
@@ -658,105 +535,15 @@ def reason_counts(reason: np.ndarray) -> dict:
     return {str(w): int(c) for w, c in zip(why, count)}
 
 
-def least_squares_image(image: np.ndarray) -> tuple:
-    """What least-squares matching samples of an image, laid out for OpenCV's remap.
-
-    Returns ``(corners, gradients)``: (H, W, 4) float32 of each pixel's
-    2×2 neighbourhood (value at x, x+1, and one row below), so that one
-    nearest-pixel fetch gives all four corners of an exact bilinear sample;
-    and (H, W, 2) float32 central-difference gradients d/dx, d/dy.
-    """
-    img = np.ascontiguousarray(image, dtype=np.float32)
-    h, w = img.shape
-    padded = np.zeros((h + 1, w + 1), np.float32)  # zeros beyond the last row and column
-    padded[:h, :w] = img
-    # interleaving in OpenCV from views of one padded copy: numpy's stack along the last axis is slow
-    corners = cv2.merge([padded[:h, :w], padded[:h, 1:], padded[1:, :w], padded[1:, 1:]])
-    # central differences (as numpy's gradient inside the image); OpenCV's filter is several times faster
-    gradients = cv2.merge([cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REPLICATE),
-                           cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REPLICATE)])
-    return corners, gradients
-
-
-def _sample_windows(corners: np.ndarray, pixel: np.ndarray, local_x: np.ndarray, local_y: np.ndarray) -> np.ndarray:
-    """Exact bilinear values (float32) of ``least_squares_image`` output at ``pixel + local`` positions.
-
-    ``pixel`` (N, 2) are whole pixels (x, y), ``local_x``, ``local_y`` (N, M)
-    float32 offsets from them (a window's positions, a few px): split so
-    that float32 keeps the fractions to 1e-6 px. The four corners come from
-    one nearest-pixel remap (fast, in OpenCV) and are weighted here with the
-    exact fractions: OpenCV's bilinear remap rounds positions to 1/32 px, too
-    coarse for least-squares matching, which resolves about 1/1000 px.
-    """
-    h, w = corners.shape[:2]
-    x0, y0 = np.floor(local_x), np.floor(local_y)
-    fx, fy = local_x - x0, local_y - y0
-    x0 += pixel[:, 0, None].astype(np.float32)
-    y0 += pixel[:, 1, None].astype(np.float32)
-    c = sample_bilinear(corners, x0, y0, interpolation=cv2.INTER_NEAREST)
-    top = c[..., 0] + fx * (c[..., 1] - c[..., 0])
-    bottom = c[..., 2] + fx * (c[..., 3] - c[..., 2])
-    value = top + fy * (bottom - top)
-    value[(x0 < 0) | (y0 < 0) | (x0 >= w - 1) | (y0 >= h - 1)] = 0
-    return value
-
-
-def _projected_normal_equations(sd: np.ndarray, centred: np.ndarray, ridge: float) -> tuple:
-    """Steepest-descent images ``sd`` (N, K, M) with a radiometric offset and gain projected out, and their normal equations.
-
-    The offset is the window's mean, the gain the mean-free window ``centred``
-    (N, M) itself: removing both components (the Schur complement of the full
-    normal equations) leaves the geometric parameters' system. ``ridge`` (a
-    fraction of the trace) keeps nearly flat windows invertible. Returns the
-    projected ``sd`` (a new array) and ``N`` (N, K, K) float64.
-    """
-    sd = sd - sd.mean(axis=2, keepdims=True)
-    c2 = np.maximum(np.sum(centred * centred, axis=1), 1e-12)
-    sd -= (np.einsum("nkm,nm->nk", sd, centred) / c2[:, None])[..., None] * centred[:, None, :]
-    N = np.einsum("nkm,njm->nkj", sd, sd).astype(float)
-    N += np.eye(sd.shape[1])[None] * ridge * np.trace(N, axis1=1, axis2=2)[:, None, None]
-    return sd, N
-
-
 def _antialias_sigma(scale, antialias_px):
     """Blur (template px, Gaussian sigma along the rows) that brings a template to the detail of a right window
     stretched by ``scale`` (< 1: squeezed); 0 where it is not squeezed."""
     return antialias_px * np.sqrt(np.maximum(1.0 / np.maximum(scale, 0.1) ** 2 - 1.0, 0.0))
 
 
-def _template(left, xy_left, wide, scale, antialias_px):
-    """Template windows (N, len(wide), len(wide)) of ``left`` at ``xy_left`` (whole-pixel offsets ``wide``, px;
-    exact bilinear samples), blurred along the rows where the right window is squeezed (stretch ``scale`` < 1;
-    see ``least_squares_refine``)."""
-    sigma = np.minimum(_antialias_sigma(scale, antialias_px), 3.0)
-    blur = sigma > 0.05
-    if not blur.any():
-        return sample_grid(left, xy_left, wide, wide)
-    T = np.empty((len(xy_left), len(wide), len(wide)), np.float32)
-    if not blur.all():
-        T[~blur] = sample_grid(left, xy_left[~blur], wide, wide)
-    # each point's kernel reaches 3 sigma: points grouped by its reach, so that a point's template does not depend
-    # on the other points in its block (matches exact to the bit however the points are split)
-    reach = np.ceil(3 * sigma).astype(int)
-    C = len(wide)
-    for r in np.unique(reach[blur]):
-        idx = np.nonzero(blur & (reach == r))[0]
-        taps = np.arange(-r, r + 1, dtype=float)
-        g = np.exp(-0.5 * (taps[None, :] / sigma[idx, None]) ** 2)
-        g = (g / g.sum(axis=1, keepdims=True)).astype(np.float32)
-        # the rows sampled r px wider either side, then each point's kernel along them, one tap at a time
-        W = sample_grid(left, xy_left[idx], np.arange(wide[0] - r, wide[-1] + r + 1, dtype=float), wide)
-        acc = W[:, :, 0:C] * g[:, 0, None, None]
-        for k in range(1, 2 * r + 1):
-            acc += W[:, :, k:k + C] * g[:, k, None, None]
-        T[idx] = acc
-    return T
-
-
 def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, xy_right: np.ndarray,
                          window: int = 11, iterations: int = 8, shift_y: bool = True, initial_scale=1.0,
-                         initial_shear=0.0, prepared: tuple | None = None, antialias_px: float = 0.0,
-                         _again: bool = True) -> dict:
+                         initial_shear=0.0, antialias_px: float = 0.0, _again: bool = True) -> dict:
     """Adaptive least-squares matching (Gruen 1985) of windows already matched to about a pixel.
 
     The right window is an affine image of the left one along the row
@@ -773,13 +560,8 @@ def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarra
     the inverse of the increment. The gain and offset are projected out of
     the geometric parameters (the Schur complement of the full normal
     equations). The x shift's precision is the forward adjustment's, from
-    the right window's gradients at the solution. All points are solved at
-    once, vectorized; 2.1x faster than the forward-additive form
-    (a new Jacobian and normal equations at every iteration) that it replaced
-    (40 000 synthetic windows of 9 px, docs/benchmarks.md).
-
-    ``prepared`` is ``least_squares_image(right)``: pass it in when refining
-    several batches on one image.
+    the right window's gradients at the solution. Each point is solved in a
+    compiled loop (``kernels.lsm_points``) with exact bilinear samples.
 
     ``antialias_px`` (px, 0: off) is the blur of an image in its own pixels
     (pixel footprint, optics and resampling, as a Gaussian's sigma). Where
@@ -793,105 +575,22 @@ def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarra
     standard deviation of the x shift, "rho": (N,) final correlation,
     "converged": (N,) bool}``.
     """
-    h = window // 2
     n = len(xy_left)
-    m = window * window
-    off = np.arange(-h, h + 1, dtype=np.float32)
-    ex = np.tile(off, window)  # the window's pixel offsets (row by row)
-    ey = np.repeat(off, window)
-    # the template and its gradients: central differences of samples one pixel wider, which equal the bilinear
-    # interpolation of the image's central differences at the same fractions
-    wide = np.arange(-h - 1, h + 2, dtype=float)
-    xy_left = np.asarray(xy_left, dtype=float)
-    T = _template(left, xy_left, wide, np.broadcast_to(np.asarray(initial_scale, dtype=float), (n,)), antialias_px)
-    L = np.ascontiguousarray(T[:, 1:-1, 1:-1]).reshape(n, m)
-    Lx = (0.5 * (T[:, 1:-1, 2:] - T[:, 1:-1, :-2])).reshape(n, m)
-    Ly = (0.5 * (T[:, 2:, 1:-1] - T[:, :-2, 1:-1])).reshape(n, m)
-    # the steepest-descent images of the parameters (x shift, stretch, shear, y shift) at the identity warp
-    sd = np.stack([Lx, Lx * ex, Lx * ey] + ([Ly] if shift_y else []), axis=1)  # (n, k, m)
-    k = sd.shape[1]
-    # project out the radiometric offset (the mean) and gain (the template itself)
-    Lc = L - L.mean(axis=1, keepdims=True)
-    Lc2 = np.maximum(np.sum(Lc * Lc, axis=1), 1e-12)
-    sd, N = _projected_normal_equations(sd, Lc, ridge=1e-9)
-    ok = np.abs(np.linalg.det(N)) > 0  # a flat template has no geometry to fit
-    Ninv = np.zeros_like(N)
-    Ninv[ok] = np.linalg.inv(N[ok])
-    step_of = (Ninv.astype(np.float32) @ sd)  # (n, k, m): increment = gain · step_of @ right window
-    corners_gradients = prepared if prepared is not None else least_squares_image(right)
-    corners = corners_gradients[0]
-    base = np.asarray(xy_right, dtype=float)
-    pixel = np.floor(base)
-    frac = base - pixel
-    # the warp from window offsets to right-image offsets from ``base``: x' = a0 + s·dx + t·dy, y' = b0 + dy
-    s = np.broadcast_to(np.asarray(initial_scale, dtype=float), (n,)).copy()
-    t = np.broadcast_to(np.asarray(initial_shear, dtype=float), (n,)).copy()
-    s_start, t_start = s.copy(), t.copy()
-    a0, b0 = np.zeros(n), np.zeros(n)
-    active = ok.copy()
-    R_all = np.zeros((n, m), np.float32)  # each point's right window at its last iteration
-    running = np.nonzero(ok)[0]
-    for it in range(iterations):
-        if len(running) == 0:
-            break
-        lx = ((frac[running, 0] + a0[running]).astype(np.float32)[:, None] + s[running, None].astype(np.float32) * ex
-              + t[running, None].astype(np.float32) * ey)
-        ly = (frac[running, 1] + b0[running]).astype(np.float32)[:, None] + ey
-        Rv = _sample_windows(corners, pixel[running], lx, ly)
-        Rc = Rv - Rv.mean(axis=1, keepdims=True)
-        gain = np.sum(Rc * Lc[running], axis=1) / np.maximum(np.sum(Rc * Rc, axis=1), 1e-12)
-        # the projected steepest-descent images are orthogonal to the offset and the template, so the residual
-        # gain·R + offset - L reduces to gain·R
-        d = (step_of[running] @ Rv[..., None])[..., 0].astype(float) * gain[:, None]
-        d0, d1, d2 = d[:, 0], d[:, 1], d[:, 2]
-        db = d[:, 3] if shift_y else np.zeros(len(running))
-        ds = 1.0 + d1
-        sr, tr = s[running], t[running]
-        # W <- W o W(d)^-1, all in the group x' = a0 + s·dx + t·dy, y' = b0 + dy
-        shift = -(sr * (d0 - d2 * db) / ds + tr * db)
-        s[running] = sr / ds
-        t[running] = tr - sr * d2 / ds
-        a0[running] += shift
-        b0[running] -= db
-        # a step larger than a pixel means the window slid off the match
-        slid = (np.abs(shift) >= 1.0) | ~(ds > 0.1)
-        active[running[slid]] = False
-        # points whose shift no longer changes stop iterating (the others go on)
-        go_on = ~slid & ((np.abs(shift) >= 1e-3) | (np.abs(db) >= 1e-3))
-        stop = ~go_on if it < iterations - 1 else np.ones(len(running), bool)
-        R_all[running[stop]] = Rv[stop]
-        running = running[go_on]
-    Rc = R_all - R_all.mean(axis=1, keepdims=True)
-    gain = np.sum(Rc * Lc, axis=1) / np.maximum(np.sum(Rc * Rc, axis=1), 1e-12)
-    resid = gain[:, None] * Rc - Lc
-    s0 = np.sqrt(np.sum(resid * resid, axis=1) / (m - k - 2))
-    # the x shift's precision from the right window's own gradients at the solution, as the forward adjustment
-    # (Gruen's) has it: the template's gradients, differenced at the left image's pixel spacing, understate a
-    # squeezed window's and overstate a stretched one's (paper scale, stretch 1.5 and more: 1.27x the forward
-    # sigma, fewer matches accepted). The gain and offset projected out as above
-    x = base[:, 0, None] + a0[:, None] + s[:, None] * ex + t[:, None] * ey
-    y = base[:, 1, None] + b0[:, None] + ey
-    g = sample_bilinear(corners_gradients[1], x, y) * gain[:, None, None].astype(np.float32)
-    gx, gy = g[..., 0], g[..., 1]
-    sd = np.stack([gx, gx * ex, gx * ey] + ([gy] if shift_y else []), axis=1)
-    _, N = _projected_normal_equations(sd, Rc, ridge=1e-12)
-    fine = np.abs(np.linalg.det(N)) > 0
-    var = np.full(n, np.inf)
-    var[fine] = np.linalg.inv(N[fine])[:, 0, 0]
-    sigma = s0 * np.sqrt(np.abs(var))
-    rho = np.sum(Rc * Lc, axis=1) / np.maximum(np.sqrt(np.sum(Rc * Rc, axis=1) * Lc2), 1e-12)
-    # the shape may change from its start (the correlation's stretch and shear) by this much, no more
-    converged = (active & (np.hypot(a0, b0) < 1.5) & (np.abs(s - s_start) < 0.6) & (np.abs(t - t_start) < 0.5)
-                 & (gain > 0.2))
-    out = {"xy": base + np.column_stack([a0, b0]), "sigma": sigma, "rho": rho, "converged": converged}
+    s_start, t_start = _kernel_array(initial_scale, float, (n,)), _kernel_array(initial_shear, float, (n,))
+    xy_left = _kernel_array(xy_left, float, (n, 2))
+    left, right = _kernel_array(left, np.float32), _kernel_array(right, np.float32)
+    xy, sigma, rho, converged, s, t = lsm_points(left, right, xy_left, _kernel_array(xy_right, float, (n, 2)),
+                                                 int(window), int(iterations), bool(shift_y), s_start, t_start,
+                                                 float(antialias_px))
+    out = {"xy": xy, "sigma": sigma, "rho": rho, "converged": converged}
     if antialias_px > 0 and _again:
         # the template's blur followed the starting stretch; where the solved one asks for a clearly different blur
         # (a guessed start, or a plane's noise on unsqueezed skin) the point is solved again from there with it
         redo = np.nonzero(converged & (np.abs(_antialias_sigma(s, antialias_px)
                                                - _antialias_sigma(s_start, antialias_px)) > 0.1))[0]
         if len(redo):
-            again = least_squares_refine(left, right, xy_left[redo], out["xy"][redo], window, iterations, shift_y,
-                                         s[redo], t[redo], corners_gradients, antialias_px, _again=False)
-            for key in out:
-                out[key][redo] = again[key]
+            again = lsm_points(left, right, xy_left[redo], xy[redo], int(window), int(iterations), bool(shift_y),
+                               s[redo], t[redo], float(antialias_px))
+            for key, value in zip(("xy", "sigma", "rho", "converged"), again[:4]):
+                out[key][redo] = value
     return out
