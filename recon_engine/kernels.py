@@ -447,3 +447,17 @@ def lsm_points(left, right, xy_left, xy_right, window, iterations, shift_y, init
         s_out[p] = s
         t_out[p] = t
     return xy, sigma_out, rho_out, conv, s_out, t_out
+
+
+def warm_up() -> None:
+    """Loads the compiled kernels (from numba's cache, or compiles them) with a call on a tiny image.
+
+    A process's first call costs about 1.5 s (numba's compiler and runtime
+    imported, the machine code loaded); the engine makes it on a thread
+    while the images load.
+    """
+    img = np.zeros((32, 32), np.float32)
+    one = np.ones(1)
+    xy = np.full((1, 2), 16.0)
+    ncc_points(img, img, xy, xy[:, 0].copy(), one, one * 0, 1, 1, 3, 1)
+    lsm_points(img, img, xy, xy.copy(), 3, 1, True, one, one * 0, 0.0)

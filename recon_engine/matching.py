@@ -225,10 +225,11 @@ def _chunked(fn, n, chunk, threads=1, order=None, **arrays):
 
 
 def _along_rows(xy: np.ndarray) -> np.ndarray:
-    """The points ``xy`` (N, 2) in raster order (row by row, then by column): the compiled kernels then read
+    """The points ``xy`` (N, 2) row by row (a stable sort of their whole rows): the compiled kernels then read
     neighbouring points' windows from the cache (Harris features come strongest first, scattered over the image:
     the correlation search 1.4-1.6x faster in raster order on a synthetic pair of paper-scale images)."""
-    return np.lexsort((xy[:, 0], np.floor(xy[:, 1])))
+    rows = np.clip(np.floor(np.nan_to_num(xy[:, 1])), -32768, 32767).astype(np.int16)  # int16: numpy's radix sort
+    return np.argsort(rows, kind="stable")
 
 
 def _search(left, right, xy, x_pred, radius, band, window, cfg, scale=1.0, shear=0.0):

@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 from .epipolar import rig_centre, subject_depth_bounds
 from .features import local_contrast
 from .formats import Calibration, Capture, FormatError, Rig, load_image
+from .kernels import warm_up
 from .multiview import IntersectionConfig, intersect
 from .parallel import cores, reuse_freed_images
 from .registration import (ICPatchConfig, Transform, chain_initial, multi_surface_registration, pair_fit,
@@ -126,9 +127,12 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
             image = (image.astype(np.float32) * (255.0 / 65535.0))
         return image.astype(np.float32), ""
 
-    # decoding and checking the images on threads (OpenCV and numpy release the GIL); the order is kept
+    # decoding and checking the images on threads (OpenCV and numpy release the GIL); the order is kept. The
+    # matching's compiled kernels load meanwhile
     with ThreadPoolExecutor(cores(cfg.tracking.matching.threads)) as pool:
+        kernels = pool.submit(warm_up)
         loaded = list(pool.map(usable, ids))
+        kernels.result()
     for cam_id, (image, why) in zip(ids, loaded):
         if why:
             unusable[cam_id] = why
