@@ -27,6 +27,8 @@ radiometric gain and offset) refines it. Where the right view squeezes the
 skin, each of its pixels averages several of the template's: least-squares
 matching blurs the template along its rows to that detail first.
 
+The correlation search and least-squares matching of each point run in
+compiled loops (``kernels``); this module decides what is searched where.
 All coordinates are rectified pixels (x = column, y = row).
 """
 
@@ -39,7 +41,6 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .imaging import sample_bilinear
 from .kernels import lsm_points, ncc_points
 from .parallel import cores
 
