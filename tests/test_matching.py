@@ -93,6 +93,33 @@ def test_a_shifted_copy_is_matched_at_the_shift():
     assert np.allclose(m["xy"][v, 0], xy[v, 0] - 17, atol=0.01) and np.allclose(m["xy"][v, 1], xy[v, 1], atol=0.01)
 
 
+def test_the_correlation_search_finds_the_peak_a_direct_computation_finds():
+    from recon_engine.matching import ncc_search
+
+    rng = np.random.default_rng(12)
+    cells = (rng.random((60, 80)) > 0.5).astype(np.float32) * 200 + 20
+    left = cv2.GaussianBlur(np.kron(cells, np.ones((3, 3), np.float32)), (0, 0), 0.8)
+    right = np.roll(left, -11, axis=1) + rng.normal(0, 8, left.shape).astype(np.float32)
+    xy = np.round(np.column_stack([rng.uniform(40, 200, 200), rng.uniform(20, 160, 200)]))
+    x_pred = xy[:, 0] - 11 + rng.integers(-3, 4, 200)
+    radius, band, window, h = 5, 1, 7, 3
+    r = ncc_search(left, right, xy, x_pred, radius, band, window)
+    # the reference: every window of the range correlated directly (whole pixels: no interpolation)
+    for p in range(len(xy)):
+        x, y = int(xy[p, 0]), int(xy[p, 1])
+        t = left[y - h:y + h + 1, x - h:x + h + 1].astype(float).ravel()
+        best, at = -2.0, None
+        for dy in range(-band, band + 1):
+            for dx in range(-radius, radius + 1):
+                xr = int(x_pred[p]) + dx
+                w = right[y + dy - h:y + dy + h + 1, xr - h:xr + h + 1].astype(float).ravel()
+                c = np.corrcoef(t, w)[0, 1]
+                if c > best:
+                    best, at = c, (xr, y + dy)
+        assert r["ncc"][p] == pytest.approx(best, abs=1e-6)
+        assert np.all(np.abs(r["xy"][p] - at) <= 0.5)  # the subpixel fit stays within half a pixel of the peak
+
+
 def _ramp_pair(gradient: float, integrate: bool = False):
     """A pattern and its right view whose disparity grows ever faster beyond column 100, reaching ``gradient``
     px/px at column 250: skin that turns away from the cameras.
