@@ -254,6 +254,25 @@ def _projected_normals(sd, k, centred, ridge, N):
         N[a, a] += ridge * trace
 
 
+@numba.njit(inline="always", **_JIT)
+def _gain(R, Lc, centre):
+    """Radiometric gain of window ``R`` (M,) against the mean-free template ``Lc``: ``(gain, Σ Rc·Lc, Σ Rc²)``
+    with ``Rc`` = ``R`` made mean-free (left in ``R`` with ``centre``)."""
+    m = R.shape[0]
+    mean = 0.0
+    for q in range(m):
+        mean += R[q]
+    mean /= m
+    num, rr = 0.0, 0.0
+    for q in range(m):
+        c = R[q] - mean
+        if centre:
+            R[q] = c
+        num += c * Lc[q]
+        rr += c * c
+    return num / max(rr, 1e-12), num, rr
+
+
 @numba.njit(**_JIT)
 def lsm_points(left, right, xy_left, xy_right, window, iterations, shift_y, initial_scale, initial_shear,
                antialias_px):
@@ -294,6 +313,7 @@ def lsm_points(left, right, xy_left, xy_right, window, iterations, shift_y, init
     Ninv = np.empty((4, 4))
     step = np.empty((4, m))
     Rv = np.empty(m)
+    R2 = Rv.reshape((window, window))  # the right window as rows (a view of Rv)
     d = np.empty(4)
     for p in range(n):
         xl, yl = xy_left[p, 0], xy_left[p, 1]
@@ -352,28 +372,9 @@ def lsm_points(left, right, xy_left, xy_right, window, iterations, shift_y, init
         Rv[:] = 0.0
         if ok:
             for it in range(iterations):
-                for q in range(m):
-                    x = bx + a0 + s * ex[q] + t * ey[q]
-                    y = by + b0 + ey[q]
-                    fx0, fy0 = floor(x), floor(y)
-                    ix, iy = int(fx0), int(fy0)
-                    if 0 <= ix < W - 1 and 0 <= iy < H - 1:
-                        fx, fy = x - fx0, y - fy0
-                        top = right[iy, ix] + fx * (right[iy, ix + 1] - right[iy, ix])
-                        bottom = right[iy + 1, ix] + fx * (right[iy + 1, ix + 1] - right[iy + 1, ix])
-                        Rv[q] = top + fy * (bottom - top)
-                    else:
-                        Rv[q] = 0.0
-                rm = 0.0
-                for q in range(m):
-                    rm += Rv[q]
-                rm /= m
-                num, rr = 0.0, 0.0
-                for q in range(m):
-                    c = Rv[q] - rm
-                    num += c * Lc[q]
-                    rr += c * c
-                gain = num / max(rr, 1e-12)
+                for i in range(window):  # the warped window, row by row: x = ... + s·dx + t·dy
+                    _sample_row(right, bx + a0 - s * h + t * (i - h), s, by + b0 + (i - h), R2, i)
+                gain = _gain(Rv, Lc, False)[0]
                 # the projected steepest-descent images are orthogonal to the offset and the template, so the
                 # residual gain·R + offset − L reduces to gain·R
                 for a in range(k):
@@ -398,17 +399,7 @@ def lsm_points(left, right, xy_left, xy_right, window, iterations, shift_y, init
         # the residuals and correlation at the last right window; the x shift's precision from the right
         # window's own gradients there (central differences, the image's border repeated), as the forward
         # adjustment (Gruen's) has it
-        rm = 0.0
-        for q in range(m):
-            rm += Rv[q]
-        rm /= m
-        num, rr = 0.0, 0.0
-        for q in range(m):
-            c = Rv[q] - rm
-            Rv[q] = c
-            num += c * Lc[q]
-            rr += c * c
-        gain = num / max(rr, 1e-12)
+        gain, num, rr = _gain(Rv, Lc, True)
         res2 = 0.0
         for q in range(m):
             e = gain * Rv[q] - Lc[q]
