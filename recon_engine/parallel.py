@@ -17,12 +17,12 @@ def reuse_freed_images(mmap_threshold: int = 512 << 20, trim_threshold: int = 1 
     """Let glibc's allocator keep freed large blocks for reuse (process-wide; False where it is not glibc).
 
     By default glibc maps every block above 32 MB afresh from the kernel and
-    unmaps it on free, so each full-size work image of an arm (3000 × 2000
-    × 4 float32 = 96 MB for least-squares matching's layout) is page-faulted
-    in again: paper scale, arm A, 1.4 s of 15 s. With blocks up to
-    ``mmap_threshold`` bytes on the heap, and up to ``trim_threshold`` bytes
-    of free heap kept, they are reused: about 1 s less per arm, the process's
-    peak memory 0.1-0.2 GB higher.
+    unmaps it on free, so each full-size work image of an arm (rectification
+    maps of 3000 × 2000 px, 48 MB; the numpy matcher's 96 MB layouts when
+    this was measured) is page-faulted in again: paper scale, arm A, 1.4 s
+    of 15 s then. With blocks up to ``mmap_threshold`` bytes on the heap,
+    and up to ``trim_threshold`` bytes of free heap kept, they are reused:
+    about 1 s less per arm then, the process's peak memory 0.1-0.2 GB higher.
     """
     import ctypes
     import ctypes.util
