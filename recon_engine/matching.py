@@ -187,7 +187,8 @@ def ncc_search(left: np.ndarray, right: np.ndarray, xy: np.ndarray, x_pred: np.n
     """
     n = len(xy)
     out, best, second, at_edge = ncc_points(_kernel_array(left, np.float32), _kernel_array(right, np.float32),
-                                            _kernel_array(xy, float, (n, 2)), _kernel_array(np.round(x_pred), float, (n,)),
+                                            _kernel_array(xy, float, (n, 2)),
+                                            _kernel_array(np.round(x_pred), float, (n,)),
                                             _kernel_array(scale, float, (n,)), _kernel_array(shear, float, (n,)),
                                             int(radius), int(band), int(window), int(exclude))
     return {"xy": out, "ncc": best, "second": second, "at_edge": at_edge}
