@@ -49,6 +49,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_simulate.py --preset paper --out bench-out/paper
 	$(PY) benchmarks/bench_calibrate.py --scenario bench-out/paper
 	$(PY) benchmarks/bench_epipolar.py --scenario bench-out/paper --capture visit0-a
+	$(PY) benchmarks/bench_matching_kernels.py --reference 43bb649
 	$(PY) benchmarks/bench_reconstruct_arm.py --scenario bench-out/paper --capture visit0-a
 	$(PY) benchmarks/bench_reconstruct.py --scenario bench-out/paper --capture visit0-a visit0-b visit1-a
 	$(PY) benchmarks/bench_service.py --scenario bench-out/paper --capture visit0-a

@@ -229,7 +229,7 @@ def _chunked(fn, n, chunk, threads=1, order=None, **arrays):
 def _along_rows(xy: np.ndarray) -> np.ndarray:
     """The points ``xy`` (N, 2) row by row (a stable sort of their whole rows): the compiled kernels then read
     neighbouring points' windows from the cache (Harris features come strongest first, scattered over the image:
-    the correlation search 1.4-1.6x faster in raster order on a synthetic pair of paper-scale images)."""
+    the correlation search 1.4x faster row by row, benchmarks/bench_matching_kernels.py)."""
     rows = np.clip(np.floor(np.nan_to_num(xy[:, 1])), -32768, 32767).astype(np.int16)  # int16: numpy's radix sort
     return np.argsort(rows, kind="stable")
 
