@@ -86,10 +86,12 @@ def ncc_points(left, right, xy, x_centre, scale, shear, radius, band, window, ex
     """Normalized cross-correlation search of each left point along its row of the right image.
 
     For point p the left window (``window`` px square around ``xy[p]``) is
-    compared with right windows centred at columns ``x_centre[p] +
-    scale[p]·(c + shear-term)`` for c in −``radius``..``radius`` and rows
-    ``y ± band``; the right window's columns are spaced ``scale[p]`` and
-    shifted ``shear[p]`` px per row. Returns ``(xy_right (N, 2), best (N,),
+    compared with the right windows centred at column ``x_centre[p] +
+    scale[p]·c + shear[p]·r`` of row ``xy[p, 1] + r``, for c in
+    −``radius``..``radius`` and r in −``band``..``band`` (whole px); each right
+    window's columns are ``scale[p]`` px apart and shift by ``shear[p]`` px
+    per row, as a surface patch foreshortened differently in the two views
+    appears. Returns ``(xy_right (N, 2), best (N,),
     second (N,), at_edge (N,))``: the subpixel peak (parabola fits across
     columns and rows), its correlation, the best correlation at least
     ``exclude`` columns away (any row; −1 if none), and whether the peak
