@@ -276,12 +276,12 @@ def _gain(R, Lc, centre):
 
 
 @numba.njit(**_JIT)
-def lsm_points(left, right, xy_left, xy_right, window, iterations, shift_y, initial_scale, initial_shear,
-               antialias_px):
+def lsm_points(left, right, xy_left, xy_right, window, iterations, shift_y, initial_scale, initial_shear, blur_px):
     """Adaptive least-squares matching of each point (see ``matching.least_squares_refine``, which documents the
     model): the inverse-compositional solution of an affine warp along the row (x shift, stretch, shear) and a
-    y shift, with the radiometric gain and offset projected out, the template blurred along its rows where the
-    right window is squeezed, and the x shift's precision from the right window's gradients at the solution.
+    y shift, with the radiometric gain and offset projected out, and the x shift's precision from the right
+    window's gradients at the solution. Point p's template is blurred along its rows by a Gaussian of sigma
+    ``blur_px[p]`` (template px, at most 3; none below 0.05): the detail of a squeezed right window.
 
     Returns ``(xy (N, 2) px, sigma (N,) px, rho (N,), converged (N,), stretch (N,), shear (N,))`` at the
     solution.
@@ -298,7 +298,7 @@ def lsm_points(left, right, xy_left, xy_right, window, iterations, shift_y, init
     s_out = np.empty(n)
     t_out = np.empty(n)
     wide = window + 2
-    most = 9  # taps either side of the widest blur kernel (3 sigma of at most 3 px)
+    most = 9  # taps either side of the widest blur kernel (3 sigma of 3 px)
     Wrow = np.empty((wide, wide + 2 * most))
     T = np.empty((wide, wide))
     g = np.empty(2 * most + 1)
@@ -320,11 +320,8 @@ def lsm_points(left, right, xy_left, xy_right, window, iterations, shift_y, init
     for p in range(n):
         xl, yl = xy_left[p, 0], xy_left[p, 1]
         s_start, t_start = initial_scale[p], initial_shear[p]
-        # the template one pixel wider than the window (for its central differences), blurred along its rows to a
-        # squeezed right window's detail
-        sig = 0.0
-        if antialias_px > 0:
-            sig = min(antialias_px * sqrt(max(1.0 / max(s_start, 0.1) ** 2 - 1.0, 0.0)), 3.0)
+        # the template one pixel wider than the window (for its central differences), blurred along its rows
+        sig = min(blur_px[p], 3.0)
         if sig > 0.05:
             r = int(np.ceil(3.0 * sig))
             total = 0.0
@@ -373,7 +370,7 @@ def lsm_points(left, right, xy_left, xy_right, window, iterations, shift_y, init
         active = ok
         Rv[:] = 0.0
         if ok:
-            for it in range(iterations):
+            for _ in range(iterations):
                 for i in range(window):  # the warped window, row by row: x = ... + s·dx + t·dy
                     _sample_row(right, bx + a0 - s * h + t * (i - h), s, by + b0 + (i - h), R2, i)
                 gain = _gain(Rv, Lc, False)[0]
@@ -453,4 +450,4 @@ def warm_up() -> None:
     one = np.ones(1)
     xy = np.full((1, 2), 16.0)
     ncc_points(img, img, xy, xy[:, 0].copy(), one, one * 0, 1, 1, 3, 1)
-    lsm_points(img, img, xy, xy.copy(), 3, 1, True, one, one * 0, 0.0)
+    lsm_points(img, img, xy, xy.copy(), 3, 1, True, one, one * 0, one * 0)

@@ -221,7 +221,7 @@ def _chunked(fn, n, chunk, threads=1, order=None, **arrays):
         return {"xy": np.zeros((0, 2)), "ncc": np.zeros(0), "second": np.zeros(0), "at_edge": np.zeros(0, bool)}
     out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     if order is not None:
-        for k, v in out.items():
+        for v in out.values():
             v[order] = v.copy()
     return out
 
@@ -600,18 +600,18 @@ def least_squares_refine(left: np.ndarray, right: np.ndarray, xy_left: np.ndarra
     s_start, t_start = _kernel_array(initial_scale, float, (n,)), _kernel_array(initial_shear, float, (n,))
     xy_left = _kernel_array(xy_left, float, (n, 2))
     left, right = _kernel_array(left, np.float32), _kernel_array(right, np.float32)
+    blur = _antialias_sigma(s_start, antialias_px)  # the kernel caps it at 3 px
     xy, sigma, rho, converged, s, t = lsm_points(left, right, xy_left, _kernel_array(xy_right, float, (n, 2)),
-                                                 int(window), int(iterations), bool(shift_y), s_start, t_start,
-                                                 float(antialias_px))
+                                                 int(window), int(iterations), bool(shift_y), s_start, t_start, blur)
     out = {"xy": xy, "sigma": sigma, "rho": rho, "converged": converged}
     if antialias_px > 0 and _again:
         # the template's blur followed the starting stretch; where the solved one asks for a clearly different blur
         # (a guessed start, or a plane's noise on unsqueezed skin) the point is solved again from there with it
-        redo = np.nonzero(converged & (np.abs(_antialias_sigma(s, antialias_px)
-                                               - _antialias_sigma(s_start, antialias_px)) > 0.1))[0]
+        blur_solved = _antialias_sigma(s, antialias_px)
+        redo = np.nonzero(converged & (np.abs(blur_solved - blur) > 0.1))[0]
         if len(redo):
             again = lsm_points(left, right, xy_left[redo], xy[redo], int(window), int(iterations), bool(shift_y),
-                               s[redo], t[redo], float(antialias_px))
+                               s[redo], t[redo], blur_solved[redo])
             for key, value in zip(("xy", "sigma", "rho", "converged"), again[:4]):
                 out[key][redo] = value
     return out

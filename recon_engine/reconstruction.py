@@ -167,7 +167,7 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     keep = reason == ""
     # wrong matches of two-ray points show only against their neighbours
     tested = np.nonzero(keep)[0]
-    first = off_surface(res["X"][tested], details=True)
+    first = off_surface(res["X"][tested])
     reason[tested[first["off"]]] = "off the local surface"
     keep = reason == ""
     t3 = time.perf_counter()

@@ -135,31 +135,26 @@ def vertex_normals(points: np.ndarray, faces: np.ndarray, towards: np.ndarray) -
 
 
 def off_surface(points: np.ndarray, k: int = 12, factor: float = 6.0, floor_mm: float = 0.3,
-                isolation: float = 8.0, details: bool = False):
-    """Points (bool mask) far off the plane through their ``k`` nearest neighbours.
+                isolation: float = 8.0) -> dict:
+    """Points far off the plane through their ``k`` nearest neighbours.
 
     A point intersected from two rays has no redundancy: a wrong match there
-    cannot be found from its rays, only from its neighbours. The threshold is
-    ``factor`` times the robust spread of all points' distances to their
-    neighbourhood planes, and at least ``floor_mm``. Points whose ``k``-th
-    neighbour is ``isolation`` times farther than usual are dropped too.
+    shows only as a point off the local surface. The limit is ``factor``
+    times the robust spread of all points' distances to their neighbourhood
+    planes, and at least ``floor_mm``. Points whose ``k``-th neighbour is
+    ``isolation`` times farther than usual are off too.
 
-    With ``details``, returns ``{"off": mask, "limits": (plane distance mm,
-    k-th neighbour distance mm), "neighbours": (N, k) indices}`` for
-    :func:`off_surface_again`.
+    Returns ``{"off": (N,) bool, "limits": (plane distance mm, k-th
+    neighbour distance mm), "neighbours": (N, k) indices}``; the limits and
+    neighbours are what :func:`off_surface_again` needs.
     """
-    from scipy.spatial import cKDTree
-
     n = len(points)
     if n <= k:
-        off = np.zeros(n, bool)
-        return {"off": off, "limits": (np.inf, np.inf), "neighbours": np.zeros((n, 0), np.int64)} if details else off
-    dist, nb = cKDTree(points).query(points, k=k + 1)
-    d = _plane_offsets(points, nb[:, 1:])
-    limits = (max(floor_mm, factor * 1.4826 * float(np.median(d))), isolation * float(np.median(dist[:, -1])))
+        return {"off": np.zeros(n, bool), "limits": (np.inf, np.inf), "neighbours": np.zeros((n, 0), np.int64)}
+    plane, kth, nb = _neighbourhood(points, np.arange(n), k)
+    limits = (max(floor_mm, factor * 1.4826 * float(np.median(plane))), isolation * float(np.median(kth)))
     # a point far from every other (a wrong match floating off the skin) has no plane to be tested against
-    off = (d > limits[0]) | (dist[:, -1] > limits[1])
-    return {"off": off, "limits": limits, "neighbours": nb[:, 1:]} if details else off
+    return {"off": (plane > limits[0]) | (kth > limits[1]), "limits": limits, "neighbours": nb}
 
 
 def off_surface_again(points: np.ndarray, test: np.ndarray, limits: tuple, k: int = 12) -> np.ndarray:
@@ -169,23 +164,24 @@ def off_surface_again(points: np.ndarray, test: np.ndarray, limits: tuple, k: in
     After points were dropped, a point whose neighbours were wrong matches too
     (dropped now) is tested against the skin around it.
     """
-    from scipy.spatial import cKDTree
-
     test = np.asarray(test, dtype=np.int64)
     if len(points) <= k or len(test) == 0:
         return np.zeros(len(test), bool)
-    dist, nb = cKDTree(points).query(points[test], k=k + 1)
-    d = _plane_offsets(points, nb[:, 1:], test)
-    return (d > limits[0]) | (dist[:, -1] > limits[1])
+    plane, kth, _ = _neighbourhood(points, test, k)
+    return (plane > limits[0]) | (kth > limits[1])
 
 
-def _plane_offsets(points, nb, which=None):
-    """Distance (mm) of each point (of ``which``, default all) to the plane through its neighbours ``nb``."""
-    p = points if which is None else points[which]
-    q = points[nb]
+def _neighbourhood(points, which, k):
+    """For the points ``which`` (indices): distance (mm) to the plane through their ``k`` nearest other points,
+    distance (mm) to the k-th of them, and their indices (len(which), k)."""
+    from scipy.spatial import cKDTree
+
+    dist, nb = cKDTree(points).query(points[which], k=k + 1)
+    q = points[nb[:, 1:]]
     centre = q.mean(axis=1)
     _, _, vt = np.linalg.svd(q - centre[:, None], full_matrices=False)
-    return np.abs(np.sum((p - centre) * vt[:, -1], axis=1))
+    plane = np.abs(np.sum((points[which] - centre) * vt[:, -1], axis=1))
+    return plane, dist[:, -1], nb[:, 1:]
 
 
 def small_components(n_points: int, faces: np.ndarray, min_points: int) -> np.ndarray:

@@ -76,7 +76,7 @@ def test_a_point_whose_wrong_neighbours_were_dropped_is_tested_again_against_the
     # wrong matches that agree with each other, 7 mm off the skin: each one's neighbours are the others
     wrong = np.column_stack([30 + rng.normal(0, 0.4, (14, 2)), 7 + rng.normal(0, 0.02, 14)])
     points = np.concatenate([skin, wrong])
-    first = off_surface(points, details=True)
+    first = off_surface(points)
     assert not first["off"][len(skin):].any()  # their own plane: the first test cannot see them
     # the island of wrong matches dropped but one (joined to the skin by a flank's patch, say)
     kept = np.concatenate([np.arange(len(skin)), [len(skin)]])
