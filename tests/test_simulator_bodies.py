@@ -108,3 +108,16 @@ def test_the_true_symmetry_line_turns_with_the_section_about_the_spine():
     depth = P0[k, 1] - y_spine[k]
     # +rotation (the right back comes backwards) carries the skin over the spine to the patient's left (+X)
     assert P1[k, 0] - P0[k, 0] == pytest.approx(depth * np.sin(np.radians(10.0)), rel=0.05)
+
+
+def test_the_body_mesh_ships_with_the_repository(monkeypatch):
+    # a user's fresh clone has nothing beside the repository: the simulator's mesh must be inside it
+    from pathlib import Path
+
+    from recon_engine.simulator.bodies import mesh_path
+
+    monkeypatch.delenv("TORSOSCAN_MAKEHUMAN_OBJ", raising=False)
+    repo = Path(__file__).resolve().parents[1]
+    path = mesh_path()
+    assert path.exists() and repo in path.resolve().parents
+    assert (path.parent / "makehuman-LICENSE.ASSETS.md").exists()

@@ -16,6 +16,7 @@ pushes the right back posteriorly (a right rib hump).
 from __future__ import annotations
 
 import functools
+import gzip
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,7 +24,8 @@ import numpy as np
 
 from .config import SubjectConfig
 
-DEFAULT_MESH = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "makehuman-hm08-base.obj"
+# Shipped with the package (CC0, gzip-compressed): a fresh clone needs nothing beside it.
+DEFAULT_MESH = Path(__file__).resolve().parent / "data" / "makehuman-hm08-base.obj.gz"
 
 
 @dataclass(frozen=True)
@@ -40,7 +42,7 @@ class Body:
 
 
 def mesh_path() -> Path:
-    """Where the MakeHuman mesh lives: ``TORSOSCAN_MAKEHUMAN_OBJ`` or ``../shared/data``."""
+    """Where the MakeHuman mesh lives: ``TORSOSCAN_MAKEHUMAN_OBJ`` or the copy shipped in the package."""
     import os
 
     env = os.environ.get("TORSOSCAN_MAKEHUMAN_OBJ")
@@ -49,7 +51,8 @@ def mesh_path() -> Path:
 
 def _read_obj_groups(path: Path):
     vertices, faces, cur = [], {}, None
-    with open(path, encoding="utf-8") as fh:
+    opener = gzip.open if str(path).endswith(".gz") else open
+    with opener(path, "rt", encoding="utf-8") as fh:
         for line in fh:
             if line.startswith("v "):
                 vertices.append(line.split()[1:4])
