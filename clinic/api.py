@@ -7,10 +7,15 @@ a 404, as if it did not exist.
 
 Images are streamed to storage in chunks while their sha256 is computed;
 nothing is held whole in memory and nothing is kept unless it checks out.
+Nothing is acknowledged before everything it refers to is stored, and no
+stored file is deleted while a row points to it: when the database or the
+storage fails, the answer is 503 with ``Retry-After``, and the retry finishes
+the upload.
 """
 
 import hashlib
 import json
+import logging
 import tempfile
 import zipfile
 from pathlib import Path, PurePosixPath
@@ -19,7 +24,7 @@ from typing import Optional
 from django.conf import settings
 from django.core.files import File
 from django.core.files.storage import default_storage
-from django.db import IntegrityError, transaction
+from django.db import DatabaseError, IntegrityError, InterfaceError, OperationalError, transaction
 from django.http import FileResponse
 from django.shortcuts import get_object_or_404
 from django.utils import timezone
@@ -33,12 +38,22 @@ from .models import (CaptureImage, CaptureSession, Job, Member, Patient, Reconst
                      Visit, clinics_of, image_path)
 
 CHUNK = 1 << 20
+RETRY_AFTER_SECONDS = 30  # what a 503 asks the rig to wait before retrying
+
+log = logging.getLogger(__name__)
 
 
 class ApiError(Exception):
     def __init__(self, status: int, detail: str):
         super().__init__(detail)
         self.status, self.detail = status, detail
+
+
+class Unavailable(ApiError):
+    """Something the upload needs is briefly down: nothing was acknowledged, the same request may be retried."""
+
+    def __init__(self, detail: str):
+        super().__init__(503, detail + f"; nothing was acknowledged: retry in {RETRY_AFTER_SECONDS} s")
 
 
 class RigKeyAuth(HttpBearer):
@@ -57,7 +72,17 @@ api = NinjaAPI(title="torsoscan", version="1", urls_namespace="api",
 
 @api.exception_handler(ApiError)
 def _api_error(request, exc):
-    return api.create_response(request, {"detail": exc.detail}, status=exc.status)
+    response = api.create_response(request, {"detail": exc.detail}, status=exc.status)
+    if exc.status == 503:
+        response["Retry-After"] = str(RETRY_AFTER_SECONDS)
+    return response
+
+
+@api.exception_handler(OperationalError)
+@api.exception_handler(InterfaceError)
+def _database_down(request, exc):
+    log.warning("database unreachable during %s %s: %s", request.method, request.path, exc)
+    return _api_error(request, Unavailable("the database is unreachable"))
 
 
 @api.exception_handler(FormatError)
@@ -304,7 +329,8 @@ def put_image(request, session_id: str, camera: str):
         if image.file:  # a repeated PUT of the same image
             return _respond(request, {"camera": camera, "sha256": digest, "size": size, "stored": "already"}, 200)
         _check_image(tmp, rig_from_dict(s.rig.description, f"rig {s.rig.serial}"), image, image.file_name)
-        name = default_storage.save(image_path(image, image.file_name), File(tmp))
+        name = _store(image_path(image, image.file_name), tmp)
+    # if this fails (the database is down), the file stays: the commit may have happened; a retry stores again
     with transaction.atomic():
         n = CaptureImage.objects.filter(pk=image.pk, file="", session__state=CaptureSession.OPEN).update(
             file=name, size=size, received=timezone.now())
@@ -325,13 +351,94 @@ def finalize_session(request, session_id: str, partial: bool = False):
     return _respond(request, _session_out(s), 200)
 
 
+def _store(name: str, fileobj) -> str:
+    """Save to the storage; a failing storage is a 503 (retry), not a 500."""
+    try:
+        return default_storage.save(name, File(fileobj))
+    except Exception as exc:
+        log.exception("storage failed saving %s", name)
+        raise Unavailable(f"the file store failed ({type(exc).__name__}: {exc})") from None
+
+
+def _stored(name: str) -> bool:
+    try:
+        return bool(name) and default_storage.exists(name)
+    except Exception as exc:
+        log.exception("storage failed checking %s", name)
+        raise Unavailable(f"the file store failed ({type(exc).__name__}: {exc})") from None
+
+
+def _discard_unreferenced(names):
+    """Delete what this request stored that no row points to. When the database cannot say (it is down), keep
+    the files: an orphan costs disk space, a deleted image that a row points to costs a patient's scan."""
+    if not names:
+        return
+    try:
+        kept = set(CaptureImage.objects.filter(file__in=names).values_list("file", flat=True))
+    except DatabaseError:
+        log.warning("database unreachable: kept %d stored files of a failed upload", len(names))
+        return
+    for name in names:
+        if name not in kept:
+            try:
+                default_storage.delete(name)
+            except Exception:
+                log.exception("could not delete %s (unreferenced, left behind)", name)
+
+
+def _spool_member(zf, im, engine_rig):
+    """A bundle's image spooled and checked against the manifest: (temporary file, size)."""
+    with zf.open(im.file) as member:
+        part, d, n = _spool(member, settings.MAX_IMAGE_BYTES, f"bundle.zip!{im.file}")
+    try:
+        if d != im.sha256:
+            raise ApiError(400, f"bundle.zip!{im.file}: camera {im.camera!r}: sha256 mismatch "
+                                f"(manifest {im.sha256}, file {d})")
+        _check_image(part, engine_rig, CaptureImage(camera=im.camera, file_name=im.file), f"bundle.zip!{im.file}")
+    except Exception:
+        part.close()
+        raise
+    return part, n
+
+
+def _complete_from_bundle(session: CaptureSession, zf, capture, engine_rig, manifest) -> CaptureSession:
+    """A retried bundle of an existing session: whatever the session lacks (an image never stored, or lost
+    from the store) is stored from the bundle, and an open session is finalized. Then it is whole."""
+    if session.manifest_sha256 != _canonical_sha256(manifest):
+        raise ApiError(409, f"session {session.uid} was opened with another capture.json under the same "
+                            "Idempotency-Key")
+    entries = {im.camera: im for im in capture.images}
+    stored = []
+    try:
+        for image in session.images.all():
+            if _stored(image.file.name):
+                continue
+            part, n = _spool_member(zf, entries[image.camera], engine_rig)
+            with part:
+                name = _store(image_path(image, image.file_name), part)
+            stored.append(name)
+            # only over what this row held before (nothing, or a lost file): a concurrent retry's file stays
+            CaptureImage.objects.filter(pk=image.pk, file=image.file.name or "").update(
+                file=name, size=n, received=timezone.now())
+            log.warning("session %s: camera %s stored again from a retried bundle", session.uid, image.camera)
+        if session.state == session.OPEN:
+            session = _finalize(session, partial=False)
+    finally:
+        _discard_unreferenced(stored)
+    session.refresh_from_db()
+    return session
+
+
 @api.post("/bundles", auth=RigKeyAuth(), tags=["rig"])
 def upload_bundle(request, visit: Optional[int] = None, calibration_set: Optional[str] = None,
                   poses: Optional[int] = None):
-    """A whole capture bundle as one zip (raw body): checked whole, stored whole, finalized; or refused."""
+    """A whole capture bundle as one zip (raw body): checked whole, stored whole, finalized; or refused.
+
+    Retrying is safe: a retry of a bundle already received answers 200 with
+    its session, after storing again anything the session lacks.
+    """
     rig = request.rig
     tmp, digest, size = _spool(request, settings.MAX_BUNDLE_BYTES, "the bundle")
-    stored = []
     with tmp:
         if not zipfile.is_zipfile(tmp):
             raise ApiError(400, "the bundle is not a zip file")
@@ -351,50 +458,36 @@ def upload_bundle(request, visit: Optional[int] = None, calibration_set: Optiona
             body = SessionIn(manifest=manifest, visit=visit, calibration_set=calibration_set, poses=poses)
             engine_rig = rig_from_dict(rig.description, f"rig {rig.serial}")
             capture = parse_capture_manifest(manifest, "bundle.zip!capture.json", engine_rig)
-            key = _idempotency_key(request, manifest)
-            existing = CaptureSession.objects.filter(rig=rig, idempotency_key=key).first()
-            if existing is not None:
-                return _respond(request, _session_out(existing), 200)
             for im in capture.images:
                 if im.file not in names:
                     raise ApiError(400, f"bundle.zip!{im.file}: camera {im.camera!r}: image file is missing")
+            key = _idempotency_key(request, manifest)
+            existing = CaptureSession.objects.filter(rig=rig, idempotency_key=key).first()
+            if existing is not None:
+                session = _complete_from_bundle(existing, zf, capture, engine_rig, manifest)
+                return _respond(request, _session_out(session), 200)
+            stored, checked = [], []
             try:
-                checked = []
                 for im in capture.images:
-                    with zf.open(im.file) as member:
-                        part, d, n = _spool(member, settings.MAX_IMAGE_BYTES, f"bundle.zip!{im.file}")
+                    part, n = _spool_member(zf, im, engine_rig)
                     with part:
-                        if d != im.sha256:
-                            raise ApiError(400, f"bundle.zip!{im.file}: camera {im.camera!r}: sha256 mismatch "
-                                                f"(manifest {im.sha256}, file {d})")
-                        probe = CaptureImage(camera=im.camera, file_name=im.file)
-                        _check_image(part, engine_rig, probe, f"bundle.zip!{im.file}")
-                        name = default_storage.save(f"captures/{rig.serial}/incoming-{digest[:16]}/{im.file}",
-                                                    File(part))
+                        name = _store(f"captures/{rig.serial}/incoming-{digest[:16]}/{im.file}", part)
                     stored.append(name)
                     checked.append((im, name, n))
+                # the session, its images and its job in one transaction: all of it is committed, or none
                 with transaction.atomic():
                     session, created = _create_session(rig, body, key)
-                    if not created:
-                        raise _AlreadyThere(session)
-                    for im, name, n in checked:
-                        CaptureImage.objects.filter(session=session, camera=im.camera).update(
-                            file=name, size=n, received=timezone.now())
-                session = _finalize(session, partial=False)
-            except _AlreadyThere as there:
-                for name in stored:
-                    default_storage.delete(name)
-                return _respond(request, _session_out(there.session), 200)
-            except Exception:
-                for name in stored:  # nothing half-stored
-                    default_storage.delete(name)
-                raise
+                    if created:
+                        for im, name, n in checked:
+                            CaptureImage.objects.filter(session=session, camera=im.camera).update(
+                                file=name, size=n, received=timezone.now())
+                        session = _finalize(session, partial=False)
+            finally:
+                _discard_unreferenced(stored)  # what no committed row points to (a failure, or a racing retry)
+            if not created:  # the same retry raced us: the first one won; make sure it is whole
+                session = _complete_from_bundle(session, zf, capture, engine_rig, manifest)
+                return _respond(request, _session_out(session), 200)
     return _respond(request, _session_out(session), 201)
-
-
-class _AlreadyThere(Exception):
-    def __init__(self, session):
-        self.session = session
 
 
 @api.get("/sessions/{session_id}", auth=[RigKeyAuth(), django_auth], tags=["rig"])

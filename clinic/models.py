@@ -237,7 +237,12 @@ class Job(models.Model):
     percent = models.PositiveSmallIntegerField(default=0)
     error = models.TextField(blank=True)
     attempt = models.PositiveIntegerField(default=0, help_text="Runs started (re-runs included)")
-    claimed = models.DateTimeField(null=True, blank=True)
+    claimed = models.DateTimeField(null=True, blank=True, help_text="When the step now running claimed the job")
+    lease_until = models.DateTimeField(
+        null=True, blank=True,
+        help_text="The running step's claim holds until then (renewed while it works); past it, the step is redone")
+    dispatched = models.DateTimeField(default=timezone.now,
+                                      help_text="When the job's next step was last handed to the broker")
     created = models.DateTimeField(default=timezone.now)
     started = models.DateTimeField(null=True, blank=True)
     finished = models.DateTimeField(null=True, blank=True)
@@ -260,6 +265,8 @@ class ArmTask(models.Model):
     arm = models.CharField(max_length=32)
     state = models.CharField(max_length=16, choices=Job.STATES, default=Job.QUEUED)
     claimed = models.DateTimeField(null=True, blank=True)
+    lease_until = models.DateTimeField(null=True, blank=True, help_text="As the job's: the arm's claim holds until then")
+    dispatched = models.DateTimeField(default=timezone.now, help_text="When the arm was last handed to the broker")
     surface = models.FileField(upload_to=result_path, max_length=500, blank=True)
     report = models.JSONField(null=True, blank=True)
     error = models.TextField(blank=True)

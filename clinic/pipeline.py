@@ -4,12 +4,19 @@ Every step claims its unit of work with a conditional UPDATE on the job's
 (or the arm's) row, so a task delivered twice does the work once, and records
 its durable state there: the broker only carries ids. Engine stages are
 called through ``recon_engine``'s public functions.
+
+The rows are also the outbox: a job committed as queued is the record of work
+to do, whether or not the broker took the message. A claim holds a lease that
+the running step renews (a heartbeat); ``redispatch_stalled`` (Celery beat, or
+``manage.py dispatch_queued``) sends again whatever was not sent, was lost with
+the broker, or whose worker died (its lease ran out).
 """
 
 import json
 import logging
 import shutil
 import tempfile
+import threading
 import traceback
 from datetime import timedelta
 from pathlib import Path
@@ -18,8 +25,8 @@ from django.conf import settings
 from django.core.files import File
 from django.core.files.base import ContentFile
 from django.core.files.storage import default_storage
-from django.db import InterfaceError, OperationalError, transaction
-from django.db.models import F, Q
+from django.db import InterfaceError, OperationalError, connection, transaction
+from django.db.models import Exists, F, OuterRef, Q
 from django.utils import timezone
 
 from recon_engine.formats import FormatError, read_calibration, read_capture, rig_from_dict
@@ -43,13 +50,13 @@ def _now():
     return timezone.now()
 
 
-def _stale_before():
-    # a claim older than the hard time limit belongs to a worker that died
-    return _now() - timedelta(seconds=settings.CELERY_TASK_TIME_LIMIT)
+def _lease():
+    return _now() + timedelta(seconds=settings.JOB_LEASE_SECONDS)
 
 
-def _claimable():
-    return Q(state=Job.QUEUED) | Q(state=Job.RUNNING, claimed__lt=_stale_before())
+def _lapsed():
+    """A running claim whose lease ran out: its worker died (or stalled) and another may take it over."""
+    return Q(state=Job.RUNNING, lease_until__lt=_now())
 
 
 def set_progress(job_id, stage=None, percent=None):
@@ -59,11 +66,47 @@ def set_progress(job_id, stage=None, percent=None):
     if percent is not None:
         fields["percent"] = max(0, min(100, int(percent)))
     Job.objects.filter(pk=job_id, state=Job.RUNNING).update(**fields)
+    # progress is a sign of life: it renews the lease of the step holding the job (none while the arms run)
+    Job.objects.filter(pk=job_id, state=Job.RUNNING, lease_until__isnull=False).update(lease_until=_lease())
 
 
-def fail(job_id, error: str):
+def fail(job_id, error: str, claimed=None):
+    """The job failed; with ``claimed``, only if that claim still holds it (not after a takeover or re-run)."""
     log.warning("job %s failed: %s", job_id, error)
-    Job.objects.filter(pk=job_id).update(state=Job.FAILED, error=error[:5000], finished=_now())
+    rows = Job.objects.filter(pk=job_id) if claimed is None else Job.objects.filter(pk=job_id, claimed=claimed)
+    rows.update(state=Job.FAILED, error=error[:5000], finished=_now(), lease_until=None)
+
+
+class heartbeat:
+    """While a step works, renew its claim's lease from a thread (the engine's calls give no progress).
+
+    ``rows`` is the claimed row's queryset, filtered on its claim, so a step
+    that lost its claim (taken over after its lease lapsed) stops renewing it.
+    """
+
+    def __init__(self, rows):
+        self.rows, self.stop = rows, threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True, name="lease-heartbeat")
+
+    def _run(self):
+        interval = max(settings.JOB_LEASE_SECONDS / 4, 0.5)
+        try:
+            while not self.stop.wait(interval):
+                try:
+                    if not self.rows.filter(state=Job.RUNNING).update(lease_until=_lease()):
+                        return
+                except TRANSIENT:
+                    log.warning("could not renew a lease (database unreachable); trying again")
+        finally:
+            connection.close()  # this thread's own connection
+
+    def __enter__(self):
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self.stop.set()
+        self.thread.join()
 
 
 def _engine_error(exc: Exception) -> str:
@@ -76,25 +119,63 @@ def _engine_error(exc: Exception) -> str:
 
 # --- dispatch ------------------------------------------------------------------
 
-def dispatch(job: Job):
-    """Start ``job`` once the surrounding transaction commits (never before its row is visible)."""
+def send(task, *args) -> bool:
+    """Hand a step to the broker. Failing to is logged, never raised: the row keeps the work, and
+    ``redispatch_stalled`` sends it again. Without a broker (eager), the step runs here, as it always did."""
+    if settings.CELERY_TASK_ALWAYS_EAGER:
+        task.delay(*args)
+        return True
+    try:
+        task.delay(*args)
+        return True
+    except Exception:
+        log.exception("could not send %s%r to the broker; the sweeper will send it again", task.name, tuple(args))
+        return False
+
+
+def _entry_task(job: Job):
     from . import tasks
 
-    task = tasks.run_calibration if job.kind == Job.CALIBRATION else tasks.start_reconstruction
-    transaction.on_commit(lambda: task.delay(job.pk))
+    return tasks.run_calibration if job.kind == Job.CALIBRATION else tasks.start_reconstruction
+
+
+def dispatch(job: Job):
+    """Start ``job`` once the surrounding transaction commits (never before its row is visible).
+
+    The committed queued row is what counts: if the broker is down now, the
+    request still succeeds and the sweeper sends the job later.
+    """
+    task = _entry_task(job)
+    transaction.on_commit(lambda: send(task, job.pk))
+
+
+def _abandoned():
+    """Running jobs that nothing holds: neither the job's lease nor any arm's is live."""
+    now = _now()
+    live_arm = ArmTask.objects.filter(job=OuterRef("pk"), state=Job.RUNNING, lease_until__gte=now)
+    return Q(state=Job.RUNNING) & (Q(lease_until=None) | Q(lease_until__lt=now)) & ~Exists(live_arm)
 
 
 def rerun(job: Job) -> Job:
-    """Put a failed (or finished) job back in the queue; its capture was kept."""
+    """Put a failed (or finished) job back in the queue; its capture was kept.
+
+    A job still running can be re-run once no worker holds it (every lease
+    lapsed): its worker died.
+    """
     with transaction.atomic():
         # a calibration that succeeded is history (stability checks refer to it): calibrate anew instead
         rerunnable = [Job.FAILED] if job.kind == Job.CALIBRATION else [Job.FAILED, Job.SUCCEEDED]
-        n = Job.objects.filter(pk=job.pk, state__in=rerunnable).update(
-            state=Job.QUEUED, stage="", percent=0, error="", finished=None, claimed=None)
+        n = Job.objects.filter(Q(pk=job.pk) & (Q(state__in=rerunnable) | _abandoned())).update(
+            state=Job.QUEUED, stage="", percent=0, error="", finished=None, claimed=None, lease_until=None,
+            dispatched=_now())
         if not n:
             job.refresh_from_db()
+            if job.state == Job.RUNNING:
+                raise JobError(f"job {job.uid} is running and its worker is alive (its claim is renewed, and lapses "
+                               f"{settings.JOB_LEASE_SECONDS} s after the worker stops); re-run it only after that")
             raise JobError(f"job {job.uid} is {job.state}; only a "
-                           f"{' or '.join(rerunnable)} {job.kind} job can be re-run")
+                           f"{' or '.join(rerunnable)} {job.kind} job (or a running one whose worker died) "
+                           "can be re-run")
         job.arms.all().delete()
         if job.kind == Job.RECONSTRUCTION:
             Reconstruction.objects.filter(job=job).delete()
@@ -143,16 +224,17 @@ def run_calibration(job_id: int) -> str:
     from recon_engine.formats import read_testfield, write_calibration
     from recon_engine.stability import compare_calibrations
 
-    n = Job.objects.filter(Q(pk=job_id, kind=Job.CALIBRATION) & _claimable()).update(
-        state=Job.RUNNING, stage="measuring targets", percent=5, claimed=_now(), started=_now(),
-        attempt=F("attempt") + 1)
+    claim = _now()
+    n = Job.objects.filter(Q(pk=job_id, kind=Job.CALIBRATION) & (Q(state=Job.QUEUED) | _lapsed())).update(
+        state=Job.RUNNING, stage="measuring targets", percent=5, claimed=claim, lease_until=_lease(),
+        started=claim, attempt=F("attempt") + 1)
     if not n:
         return "not claimed"
     job = Job.objects.select_related("rig").get(pk=job_id)
     rig = rig_from_dict(job.rig.description, f"rig {job.rig.serial}")
     sessions = list(job.sessions.select_related("testfield").order_by("pose", "id"))
     try:
-        with _workdir() as tmp:
+        with _workdir() as tmp, heartbeat(Job.objects.filter(pk=job_id, claimed=claim)):
             tmp = Path(tmp)
             if not sessions:
                 raise JobError("the calibration job has no test-field sessions")
@@ -201,35 +283,51 @@ def run_calibration(job_id: int) -> str:
                 rig.needs_recalibration = False
                 rig.recalibration_reason = ""
             rig.save(update_fields=["needs_recalibration", "recalibration_reason"])
-            Job.objects.filter(pk=job_id).update(state=Job.SUCCEEDED, stage="done", percent=100, finished=_now())
+            if not Job.objects.filter(pk=job_id, state=Job.RUNNING, claimed=claim).update(
+                    state=Job.SUCCEEDED, stage="done", percent=100, finished=_now(), lease_until=None):
+                # another worker took the job over (this one had stalled past its lease): its result counts
+                raise _ClaimLost()
         return "succeeded"
+    except _ClaimLost:
+        return "claim lost"
     except TRANSIENT:
-        Job.objects.filter(pk=job_id).update(state=Job.QUEUED, claimed=None)
+        Job.objects.filter(pk=job_id, claimed=claim).update(state=Job.QUEUED, claimed=None, lease_until=None)
         raise
     except Exception as exc:  # the engine's error becomes the job's, for the technician
-        fail(job_id, f"calibration: {_engine_error(exc)}")
+        fail(job_id, f"calibration: {_engine_error(exc)}", claimed=claim)
         return "failed"
+
+
+class _ClaimLost(Exception):
+    """Rolls back a step's results: its claim was taken over meanwhile."""
 
 
 # --- reconstruction -------------------------------------------------------------------
 
 def start_reconstruction(job_id: int) -> list:
     """Claim the job and create its arm rows; the arms to dispatch (empty when not claimed)."""
-    n = Job.objects.filter(Q(pk=job_id, kind=Job.RECONSTRUCTION) & _claimable()).update(
-        state=Job.RUNNING, stage="arms", percent=ARMS_START, claimed=_now(), started=_now(),
+    claim = _now()
+    # a start that died before its arms existed (lease lapsed, stage still "arms") is started again
+    n = Job.objects.filter(Q(pk=job_id, kind=Job.RECONSTRUCTION)
+                           & (Q(state=Job.QUEUED) | (_lapsed() & Q(stage="arms")))).update(
+        state=Job.RUNNING, stage="arms", percent=ARMS_START, claimed=claim, lease_until=_lease(), started=claim,
         attempt=F("attempt") + 1)
     if not n:
         return []
     job = Job.objects.select_related("rig", "session", "calibration").get(pk=job_id)
     if job.calibration is None:
         fail(job_id, f"rig {job.rig.serial} has no calibration yet: upload its test-field captures, "
-                     "then re-run this job")
+                     "then re-run this job", claimed=claim)
         return []
     rig = rig_from_dict(job.rig.description, f"rig {job.rig.serial}")
     arms = [a.id for a in rig.arms]
-    job.arms.exclude(state=Job.SUCCEEDED).update(state=Job.QUEUED, claimed=None, error="")
-    for arm in arms:
-        ArmTask.objects.get_or_create(job=job, arm=arm)
+    with transaction.atomic():
+        job.arms.exclude(state=Job.SUCCEEDED).update(state=Job.QUEUED, claimed=None, lease_until=None, error="",
+                                                     dispatched=_now())
+        for arm in arms:
+            ArmTask.objects.get_or_create(job=job, arm=arm)
+        # from here the arms hold the work (each its own lease); the job's row only joins them
+        Job.objects.filter(pk=job_id, claimed=claim).update(lease_until=None)
     return [a.arm for a in job.arms.exclude(state=Job.SUCCEEDED)]
 
 
@@ -238,87 +336,109 @@ def reconstruct_arm(job_id: int, arm: str) -> str:
     from recon_engine.reconstruction import reconstruct_arm as engine_reconstruct_arm
     from recon_engine.results import arm_surface_bytes
 
+    claim = _now()
     n = ArmTask.objects.filter(Q(job_id=job_id, arm=arm, job__state=Job.RUNNING)
-                               & (Q(state=Job.QUEUED) | Q(state=Job.RUNNING, claimed__lt=_stale_before()))
-                               ).update(state=Job.RUNNING, claimed=_now())
+                               & (Q(state=Job.QUEUED) | _lapsed())
+                               ).update(state=Job.RUNNING, claimed=claim, lease_until=_lease())
     if not n:
         return "not claimed"
     task = ArmTask.objects.select_related("job__rig", "job__session", "job__calibration").get(job_id=job_id, arm=arm)
     job = task.job
+    mine = ArmTask.objects.filter(pk=task.pk, state=Job.RUNNING, claimed=claim)
     try:
         rig = rig_from_dict(job.rig.description, f"rig {job.rig.serial}")
         cameras = next(a.cameras for a in rig.arms if a.id == arm)
-        with _workdir() as tmp:
+        with _workdir() as tmp, heartbeat(mine):
             tmp = Path(tmp)
             calibration = _calibration_on_disk(job.calibration, tmp)
             capture = read_capture(materialize(job.session, tmp / "capture", cameras), rig)
             surface, report = engine_reconstruct_arm(capture, rig, calibration, arm)
         task.surface.save(f"arm-{arm}.npz", ContentFile(arm_surface_bytes(surface)), save=False)
-        task.report, task.state = report, Job.SUCCEEDED
-        task.save(update_fields=["surface", "report", "state"])
+        if not mine.update(surface=task.surface.name, report=report, state=Job.SUCCEEDED, lease_until=None):
+            return "claim lost"  # taken over after this worker stalled past its lease: the other one finishes
     except TRANSIENT:
-        ArmTask.objects.filter(pk=task.pk).update(state=Job.QUEUED, claimed=None)
+        mine.update(state=Job.QUEUED, claimed=None, lease_until=None)
         raise
     except Exception as exc:
-        ArmTask.objects.filter(pk=task.pk).update(state=Job.FAILED, error=_engine_error(exc))
-    done = job.arms.filter(state__in=[Job.SUCCEEDED, Job.FAILED]).count()
-    total = job.arms.count()
+        if not mine.update(state=Job.FAILED, error=_engine_error(exc), lease_until=None):
+            return "claim lost"
+    return "arms done" if arms_finished(job_id) else "arm done"
+
+
+def arms_finished(job_id) -> bool:
+    """Progress after an arm; once every arm is done, the job is handed over to the registration (once)."""
+    arms = ArmTask.objects.filter(job_id=job_id)
+    done, total = arms.filter(state__in=[Job.SUCCEEDED, Job.FAILED]).count(), arms.count()
     set_progress(job_id, percent=ARMS_START + (REGISTRATION_START - ARMS_START) * done / max(total, 1))
-    if done == total and Job.objects.filter(pk=job_id, state=Job.RUNNING, stage="arms").update(
-            stage="registration queued", percent=REGISTRATION_START):
-        return "arms done"
-    return "arm done"
+    return bool(total and done == total and Job.objects.filter(
+        pk=job_id, state=Job.RUNNING, stage="arms", lease_until=None).update(
+            stage="registration queued", percent=REGISTRATION_START, dispatched=_now()))
+
+
+REGISTRATION_STAGES = ["registration", "indices and pictures", "comparison"]
 
 
 def register(job_id: int) -> str:
     """Registration of the arm surfaces, the torso files, then comparison with earlier visits."""
-    from recon_engine.reconstruction import register_arms
-    from recon_engine.results import read_arm_surface, write_torso
-
-    if not Job.objects.filter(pk=job_id, state=Job.RUNNING, stage="registration queued").update(
-            stage="registration", claimed=_now()):
+    claim = _now()
+    # handed over by the last arm, or a registration whose worker died (its lease lapsed): done again
+    if not Job.objects.filter(Q(pk=job_id, state=Job.RUNNING)
+                              & (Q(stage="registration queued") | (_lapsed() & Q(stage__in=REGISTRATION_STAGES)))
+                              ).update(stage="registration", claimed=claim, lease_until=_lease()):
         return "not claimed"
     job = Job.objects.select_related("rig", "session", "calibration").get(pk=job_id)
     try:
-        rig = rig_from_dict(job.rig.description, f"rig {job.rig.serial}")
-        surfaces, reports, failed = {}, {}, {}
-        for task in job.arms.all():
-            if task.state == Job.SUCCEEDED:
-                with default_storage.open(task.surface.name, "rb") as fh:
-                    surfaces[task.arm] = read_arm_surface(fh)
-                reports[task.arm] = task.report
-            else:
-                failed[task.arm] = task.error or "not reconstructed"
-        with _workdir() as tmp:
-            tmp = Path(tmp)
-            calibration = _calibration_on_disk(job.calibration, tmp)
-            result = register_arms(surfaces, reports, failed, rig, calibration)
-            paths = write_torso(tmp / "out", result)
-            rec = Reconstruction(job=job, session=job.session, report=result["report"],
-                                 status=result["report"]["status"], points=result["report"]["points"])
-            for field, path in zip(("torso", "mesh", "report_file"), paths):
-                with open(path, "rb") as fh:
-                    getattr(rec, field).save(path.name, File(fh), save=False)
-            rec.save()
-        if rec.status == "failed":
-            # the files stay for inspection, but the torso is not presented as good
-            fail(job_id, "registration: " + "; ".join(result["report"]["problems"]))
-            return "failed"
-        set_progress(job_id, "indices and pictures", ANALYSIS_START)
-        from .analysis_step import analyse_reconstruction
-
-        analyse_reconstruction(rec)
-        set_progress(job_id, "comparison", COMPARISON_START)
-        compare_with_earlier(rec)
-        Job.objects.filter(pk=job_id, state=Job.RUNNING).update(
-            state=Job.SUCCEEDED, stage="done", percent=100, finished=_now())
-        return "succeeded"
+        with heartbeat(Job.objects.filter(pk=job_id, claimed=claim)):
+            return _register(job, claim)
     except TRANSIENT:
-        Job.objects.filter(pk=job_id).update(stage="registration queued")
+        Job.objects.filter(pk=job_id, claimed=claim).update(stage="registration queued", lease_until=None,
+                                                            dispatched=_now())
         raise
     except Exception as exc:
-        fail(job_id, f"registration: {_engine_error(exc)}")
+        fail(job_id, f"registration: {_engine_error(exc)}", claimed=claim)
         return "failed"
+
+
+def _register(job: Job, claim) -> str:
+    from recon_engine.reconstruction import register_arms
+    from recon_engine.results import read_arm_surface, write_torso
+
+    # what a registration that died half-way left behind is made again
+    Reconstruction.objects.filter(job=job).delete()
+    rig = rig_from_dict(job.rig.description, f"rig {job.rig.serial}")
+    surfaces, reports, failed = {}, {}, {}
+    for task in job.arms.all():
+        if task.state == Job.SUCCEEDED:
+            with default_storage.open(task.surface.name, "rb") as fh:
+                surfaces[task.arm] = read_arm_surface(fh)
+            reports[task.arm] = task.report
+        else:
+            failed[task.arm] = task.error or "not reconstructed"
+    with _workdir() as tmp:
+        tmp = Path(tmp)
+        calibration = _calibration_on_disk(job.calibration, tmp)
+        result = register_arms(surfaces, reports, failed, rig, calibration)
+        paths = write_torso(tmp / "out", result)
+        rec = Reconstruction(job=job, session=job.session, report=result["report"],
+                             status=result["report"]["status"], points=result["report"]["points"])
+        for field, path in zip(("torso", "mesh", "report_file"), paths):
+            with open(path, "rb") as fh:
+                getattr(rec, field).save(path.name, File(fh), save=False)
+        rec.save()
+    if rec.status == "failed":
+        # the files stay for inspection, but the torso is not presented as good
+        fail(job.pk, "registration: " + "; ".join(result["report"]["problems"]), claimed=claim)
+        return "failed"
+    set_progress(job.pk, "indices and pictures", ANALYSIS_START)
+    from .analysis_step import analyse_reconstruction
+
+    analyse_reconstruction(rec)
+    set_progress(job.pk, "comparison", COMPARISON_START)
+    compare_with_earlier(rec)
+    if not Job.objects.filter(pk=job.pk, state=Job.RUNNING, claimed=claim).update(
+            state=Job.SUCCEEDED, stage="done", percent=100, finished=_now(), lease_until=None):
+        return "claim lost"
+    return "succeeded"
 
 
 def earlier_reconstructions(rec: Reconstruction):
@@ -373,3 +493,53 @@ def flag_rigs_for_recalibration(now=None) -> list:
     return flagged
 
 
+
+
+def redispatch_stalled(older_than=None, now=None) -> list:
+    """The outbox's sweeper and the claims' watchdog (Celery beat, or ``manage.py dispatch_queued``).
+
+    Sends again every step the rows say is due and nobody is doing: a job
+    queued but not claimed for ``JOB_REDISPATCH_SECONDS`` (its message never
+    reached the broker, or the broker lost it), an arm or a registration
+    handed over but not claimed as long, and a step whose claim's lease
+    lapsed (its worker died). Each row is sent at most once per that period;
+    a step delivered twice runs once (the claims), so sending too often is
+    harmless. Returns what was sent, as ``(task name, job id[, arm])``.
+    """
+    from . import tasks
+
+    now = now or _now()
+    due = now - timedelta(seconds=settings.JOB_REDISPATCH_SECONDS if older_than is None else older_than)
+    expired = Q(state=Job.RUNNING, lease_until__lt=now)
+    sent = []
+
+    def resend(rows, row, task, *args):
+        # the conditional update elects one sweeper per row and period (several beats are harmless too)
+        if rows.filter(pk=row.pk, dispatched=row.dispatched).update(dispatched=now):
+            log.warning("re-dispatching %s%r (queued since %s, lease %s)", task.name, args, row.dispatched,
+                        row.lease_until)
+            if send(task, *args):
+                sent.append((task.name, *args))
+
+    for job in Job.objects.filter(state=Job.QUEUED, dispatched__lt=due):
+        resend(Job.objects, job, _entry_task(job), job.pk)
+    for job in Job.objects.filter(expired, dispatched__lt=due):
+        if job.kind == Job.CALIBRATION:
+            resend(Job.objects, job, tasks.run_calibration, job.pk)
+        elif job.stage == "arms":  # died while starting, before the arms existed
+            resend(Job.objects, job, tasks.start_reconstruction, job.pk)
+        elif job.stage in REGISTRATION_STAGES:
+            resend(Job.objects, job, tasks.register, job.pk)
+    running = Job.objects.filter(state=Job.RUNNING, kind=Job.RECONSTRUCTION)
+    for job in running.filter(stage="registration queued", dispatched__lt=due):
+        resend(Job.objects, job, tasks.register, job.pk)
+    for arm in ArmTask.objects.filter(Q(job__in=running.filter(stage="arms", lease_until=None))
+                                      & (Q(state=Job.QUEUED) | expired), dispatched__lt=due):
+        resend(ArmTask.objects, arm, tasks.reconstruct_arm, arm.job_id, arm.arm)
+    # the last arm's worker died between finishing its arm and handing over: hand over now
+    for job in running.filter(stage="arms", lease_until=None).exclude(arms=None).exclude(
+            arms__state__in=[Job.QUEUED, Job.RUNNING]):
+        if arms_finished(job.pk):
+            send(tasks.register, job.pk)
+            sent.append((tasks.register.name, job.pk))
+    return sent

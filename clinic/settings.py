@@ -173,15 +173,32 @@ CELERY_TASK_TIME_LIMIT = envint("CELERY_TASK_TIME_LIMIT", 3900)
 # a task not acknowledged within this time is redelivered: above the hard limit
 CELERY_BROKER_TRANSPORT_OPTIONS = {"visibility_timeout": CELERY_TASK_TIME_LIMIT + 600}
 CELERY_TASK_DEFAULT_QUEUE = os.environ.get("CELERY_QUEUE", "torsoscan")
+# A broker that is down must not hold a request: publishing gives up after about a second (the job's row is the
+# record of work; the sweeper below sends it when the broker is back).
+CELERY_BROKER_CONNECTION_TIMEOUT = 2
+CELERY_TASK_PUBLISH_RETRY_POLICY = {"max_retries": 2, "interval_start": 0, "interval_step": 0.5, "interval_max": 0.5}
 CELERY_TASK_SERIALIZER = "json"
 CELERY_ACCEPT_CONTENT = ["json"]
 
+# Jobs survive the broker and their workers: a step's claim holds a lease its
+# worker renews (every quarter of it); a queued step not taken for
+# JOB_REDISPATCH_SECONDS, or a claim whose lease lapsed, is sent again by the
+# sweeper, which beat runs every JOB_SWEEP_SECONDS. A worker that dies is thus
+# replaced within JOB_LEASE_SECONDS + JOB_SWEEP_SECONDS (once a worker is up).
+JOB_LEASE_SECONDS = envint("JOB_LEASE_SECONDS", 120)
+JOB_REDISPATCH_SECONDS = envint("JOB_REDISPATCH_SECONDS", 60)
+JOB_SWEEP_SECONDS = envint("JOB_SWEEP_SECONDS", 30)
+
 # Scheduled work (Celery beat with django-celery-beat's database scheduler):
-# rigs due for recalibration are flagged.
+# rigs due for recalibration are flagged; stalled jobs are sent again.
 CELERY_BEAT_SCHEDULER = "django_celery_beat.schedulers:DatabaseScheduler"
 CELERY_BEAT_SCHEDULE = {
     "flag-rigs-for-recalibration": {
         "task": "clinic.tasks.flag_rigs_for_recalibration",
         "schedule": envint("RECALIBRATION_CHECK_SECONDS", 3600),
+    },
+    "redispatch-stalled-jobs": {
+        "task": "clinic.tasks.redispatch_stalled",
+        "schedule": JOB_SWEEP_SECONDS,
     },
 }

@@ -2,11 +2,14 @@
 
 Every task is acknowledged late and rejected when its worker is lost (see
 settings), so a crash re-delivers it; the conditional claims in ``pipeline``
-make the second delivery harmless. Only transient faults (the database or
-the broker unreachable) are retried, a bounded number of times.
+make the second delivery harmless (and let it take over a claim whose lease
+lapsed). Only transient faults (the database or the broker unreachable) are
+retried, a bounded number of times. The next step is sent with
+``pipeline.send``: if the broker is down, the rows keep it and the sweeper
+(``redispatch_stalled``, on the beat) sends it later.
 """
 
-from celery import group, shared_task
+from celery import shared_task
 
 from . import pipeline
 
@@ -28,17 +31,16 @@ def run_calibration(job_id: int) -> str:
 @shared_task(**RETRY)
 def start_reconstruction(job_id: int) -> str:
     arms = pipeline.start_reconstruction(job_id)
-    if arms:
-        # a group, not a chord: the arms join through the job's row (pipeline.reconstruct_arm)
-        group(reconstruct_arm.s(job_id, arm) for arm in arms).apply_async()
-    return f"{len(arms)} arms dispatched"
+    # separate tasks, not a chord: the arms join through the job's row (pipeline.reconstruct_arm)
+    sent = sum(pipeline.send(reconstruct_arm, job_id, arm) for arm in arms)
+    return f"{sent} of {len(arms)} arms dispatched"
 
 
 @shared_task(**RETRY)
 def reconstruct_arm(job_id: int, arm: str) -> str:
     outcome = pipeline.reconstruct_arm(job_id, arm)
     if outcome == "arms done":
-        register.delay(job_id)
+        pipeline.send(register, job_id)
     return outcome
 
 
@@ -51,3 +53,10 @@ def register(job_id: int) -> str:
 def flag_rigs_for_recalibration() -> list:
     """Scheduled (Celery beat): rigs due for recalibration are flagged."""
     return pipeline.flag_rigs_for_recalibration()
+
+
+@shared_task
+def redispatch_stalled() -> list:
+    """Scheduled (Celery beat): queued work the broker never got or lost, and steps whose worker died, are sent
+    again. Not retried: the next beat is the retry."""
+    return pipeline.redispatch_stalled()
