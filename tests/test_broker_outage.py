@@ -1,0 +1,52 @@
+"""A broker that blinks loses no work: a finalize during the outage is answered with its job queued, the images
+stay, and once the broker is back the sweeper sends the job, which runs to the end once.
+
+Real processes: PostgreSQL, a redis-server of the test's own (stopped, and
+started again empty, as a broker restarted without persistence), a web server
+and a Celery worker.
+"""
+
+import time
+
+from tests.outage import clinic_with_own_broker, images_in_store, wait_until
+from tests.service_flow import register_rig, upload_capture, wait_for_job
+
+
+def test_it_runs_a_calibration_finalized_while_the_broker_was_down(tmp_path, rig_session_1):
+    with clinic_with_own_broker(tmp_path) as (clinic, broker):
+        clinic.start_worker()
+        api = clinic.api
+        key = register_rig(api, clinic.clinic_id, rig_session_1)
+        poses = sorted((rig_session_1 / "captures").glob("testfield-pose*"))
+
+        broker.stop()
+        t0 = time.time()
+        # every request succeeds (upload_capture asserts 201 for the session and each image, 200 for finalize)
+        sessions = [upload_capture(api, key, folder, calibration_set="outage", poses=len(poses)) for folder in poses]
+        upload_seconds = time.time() - t0
+        jobs = [j for j in sessions[-1]["jobs"] if j["kind"] == "calibration"]
+        assert len(jobs) == 1 and jobs[0]["state"] == "queued", sessions[-1]["jobs"]
+        job_id = jobs[0]["id"]
+        for folder, session in zip(poses, sessions):
+            assert all(images_in_store(clinic, folder, session["id"]).values())
+        assert "could not send clinic.tasks.run_calibration" in (clinic.logs / "server.log").read_text()
+
+        # the sweeper itself survives the outage: nothing sent, the job still queued
+        assert "0 step(s) re-dispatched" in clinic.sweep("--older-than", "0")
+        assert api.call("GET", f"/api/jobs/{job_id}", key=key).json()["state"] == "queued"
+
+        broker.start()
+        back = time.time()
+        # swept twice: the job is delivered twice, and runs once
+        assert "1 step(s) re-dispatched" in clinic.sweep("--older-than", "0")
+        assert "1 step(s) re-dispatched" in clinic.sweep("--older-than", "0")
+        job = wait_for_job(api, key, job_id, timeout=300)
+        done_after = time.time() - back
+        assert job["state"] == "succeeded" and job["attempt"] == 1, job
+        assert clinic.sql("SELECT count(*) FROM clinic_calibration") == [(1,)]
+        wait_until(lambda: "'not claimed'" in clinic.worker_log(), 30, "the second delivery refused")
+        # and nothing is left to send
+        assert "0 step(s) re-dispatched" in clinic.sweep("--older-than", "0")
+        (started,), = clinic.sql("SELECT extract(epoch from started) FROM clinic_job")
+        print(f"uploads during the outage {upload_seconds:.1f} s; once the broker was back, the calibration was "
+              f"claimed after {float(started) - back:.1f} s and done after {done_after:.1f} s")
