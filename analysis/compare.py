@@ -114,6 +114,9 @@ def compare_torsos(earlier: Torso, later: Torso, cfg: AnalysisConfig | None = No
                             "change": {k: (g1[k] - g0[k]) if g0[k] is not None and g1[k] is not None else None
                                        for k in g0}}
         report["indices"] = {"earlier": _headline(ea.report), "later": _headline(la.report)}
+        report["facing"] = facing_agreement(ea, la)
+        if not report["facing"]["consistent"]:
+            report.setdefault("warnings", []).append(report["facing"]["reason"])
     except ValueError as exc:
         report["regions"] = {}
         report["warnings"] = [f"regions and growth not computed: {exc}"]
@@ -123,6 +126,28 @@ def compare_torsos(earlier: Torso, later: Torso, cfg: AnalysisConfig | None = No
         flag_comparison(report, mdc)
     return {"report": report, "points": moved.points, "normals": moved.normals, "deformation_mm": deformation,
             "regions": regions}
+
+
+# two scans of one patient whose back directions differ by more than this (after the registration) disagree
+# on the patient's sides: a same-day re-scan differs by a few degrees of sway, a visit by its placement (<10 deg)
+FACING_AGREEMENT_DEG = 45.0
+
+
+def facing_agreement(earlier_analysis, later_analysis) -> dict:
+    """Whether two analyses (the later one on the later torso moved into the earlier frame) agree on where
+    the patient's back faces, and so on the patient's left and right: ``{"angle_deg", "consistent", ...}``."""
+    a, b = earlier_analysis.frame.R[1], later_analysis.frame.R[1]
+    angle = float(np.degrees(np.arccos(np.clip(a @ b, -1.0, 1.0))))
+    fe = earlier_analysis.report.get("frame", {}).get("facing", {})
+    fl = later_analysis.report.get("frame", {}).get("facing", {})
+    out = {"angle_deg": angle, "consistent": bool(angle <= FACING_AGREEMENT_DEG),
+           "earlier": {k: fe.get(k) for k in ("method", "status")},
+           "later": {k: fl.get(k) for k in ("method", "status")}}
+    if not out["consistent"]:
+        out["reason"] = (f"the two scans disagree on where the patient's back faces ({angle:.0f} deg apart after "
+                         "the registration): their left and right cannot both be right, so no sided index is "
+                         "compared; check the pictures")
+    return out
 
 
 def _headline(rep: dict) -> dict:

@@ -158,7 +158,7 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         # a sparse cloud (a reduced rig): cells and smoothing grow with the point spacing
         ic = replace(ic, grid_mm=max(ic.grid_mm, 1.0 * spacing), smooth_mm=max(ic.smooth_mm, 1.5 * spacing),
                      gap_mm=max(ic.gap_mm, 4.0 * spacing))
-    post, facing = detect_posterior(torso.points, ic.facing)
+    post, facing = detect_posterior(torso.points, ic.facing, _clinician_facing(torso, landmarks) or torso.patient)
     c = np.median(torso.points, axis=0)
     frame0 = frame_from_posterior(post, [c[0], c[1], 0.0])
     rc = RigidConfig(initial_distance_mm=60.0, min_distance_mm=3.0, sample=8000)
@@ -326,7 +326,42 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         "sections": sections,
         "units": {"lengths": "mm", "angles": "deg"},
     }
+    if facing.get("status") == "uncertain":
+        withhold(report, f"not measurable on this scan: the patient's facing is uncertain ({facing.get('reason')}); "
+                         "mark the vertebra prominens on the back to settle it")
     return TorsoAnalysis(report, frame, dmap, lm_rig, asym, sections)
+
+
+# figures that read the back in the patient frame: with the back and front (and so left and right) in doubt,
+# none of them can be told; the trunk's length and the whole-torso asymmetry do not depend on the facing
+SIDED = ("lateral_deviation_mm", "surface_rotation_deg", "spine_lateral_deviation_mm", "midline_rotation_deg",
+         "hump_mm", "hump_angle_deg", "trunk_imbalance_mm", "trunk_inclination_mm", "regions", "apex")
+
+
+def withhold(report: dict, reason: str) -> dict:
+    """Replace the facing-dependent figures of an indices report by None, in place, and say why."""
+    for key in SIDED:
+        if key not in report:
+            continue
+        v = report[key]
+        report[key] = {k: None for k in v} if isinstance(v, dict) and key not in ("regions", "apex") else None
+    report["not_measurable"] = {"indices": list(SIDED), "reason": reason}
+    return report
+
+
+def _clinician_facing(torso: Torso, landmarks: dict | None) -> dict | None:
+    """A facing prior from the clinician's vertebra prominens: the back is where the clinician marked it."""
+    vp = (landmarks or {}).get("vertebra_prominens")
+    if vp is None:
+        return None
+    from .torso import axis_points
+
+    vp = np.asarray(vp, float).reshape(3)
+    axis = axis_points(torso.points, np.array([vp[2]]))[0]
+    v = np.array([vp[0] - axis[0], vp[1] - axis[1], 0.0])
+    if np.linalg.norm(v) < 20.0:  # on the axis: says nothing of the facing
+        return None
+    return {"posterior": (v / np.linalg.norm(v)).tolist(), "back_towards": [], "source": "clinician"}
 
 
 def compute_indices(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: dict | None = None) -> dict:

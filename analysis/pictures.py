@@ -65,6 +65,18 @@ def _camera(plotter, frame: PatientFrame, points: np.ndarray, view: str, aspect:
     plotter.camera.parallel_scale = 0.55 * max(h, w / aspect)
 
 
+def _side_labels(plotter, frame: PatientFrame, view: str, font_size: int = 11):
+    """The patient's left and right written on the picture's edges, from the frame, so anyone can check them."""
+    direction, up = _view_axes(frame, view)
+    screen_right = np.cross(up, direction)
+    s = float(frame.R[0] @ screen_right)
+    if abs(s) < 0.5:
+        return
+    left_pos, right_pos = ("lower_right", "lower_left") if s > 0 else ("lower_left", "lower_right")
+    plotter.add_text("L (patient's left)", position=left_pos, font_size=font_size, color="black")
+    plotter.add_text("R (patient's right)", position=right_pos, font_size=font_size, color="black")
+
+
 def _facing(normals, frame, view):
     """Points whose normal faces the camera of ``view`` (a cloud has no occlusion of its own)."""
     if normals is None:
@@ -91,6 +103,7 @@ def _render(points, normals, out_png, frame, view, size, point_size, title=None,
     cloud = _cloud(np.asarray(points)[keep], None if normals is None else np.asarray(normals)[keep])
     p.add_mesh(cloud, point_size=point_size, render_points_as_spheres=True, lighting=True, **mesh_kw)
     _camera(p, frame, np.asarray(cloud.points), view, size[0] / size[1])
+    _side_labels(p, frame, view)
     if title:
         p.add_text(title, position="upper_left", font_size=12, color="black")
     Path(out_png).parent.mkdir(parents=True, exist_ok=True)
@@ -108,17 +121,28 @@ def _point_size(points, size):
 
 
 def torso_views(torso: Torso | str, out_dir, frame: PatientFrame | None = None, size=(800, 1000),
-                views=VIEWS) -> list[str]:
+                views=VIEWS, titles: dict | None = None) -> list[str]:
     """Shaded pictures of a torso (a :class:`Torso` or a PLY path) from the back, side, top and front.
 
-    Writes ``out_dir/torso-<view>.png``; returns the paths in ``views`` order.
+    Writes ``out_dir/torso-<view>.png``, the patient's left and right marked on each; returns the paths
+    in ``views`` order. ``titles``: view -> title (default the view's name).
     """
     if not isinstance(torso, Torso):
         torso = read_torso(torso)
     frame = frame or default_frame(torso.points)
     ps = _point_size(torso.points, size)
-    return [_render(torso.points, torso.normals, Path(out_dir) / f"torso-{v}.png", frame, v, size, ps, title=LABELS[v],
+    titles = {**LABELS, **(titles or {})}
+    return [_render(torso.points, torso.normals, Path(out_dir) / f"torso-{v}.png", frame, v, size, ps, title=titles[v],
                     color="#e0b8a0", smooth_shading=True, specular=0.2) for v in views]
+
+
+def _facing_titles(report: dict) -> dict:
+    """View titles that say how the patient's facing was found (and when it is in doubt)."""
+    facing = (report.get("frame") or {}).get("facing") or {}
+    how = {"rig": "facing from the rig's footplate", "shape": "facing from the torso's shape",
+           "clinician": "facing from the clinician's landmark", "given": "facing given"}.get(facing.get("method"), "")
+    note = "FACING UNCERTAIN: sides not measured" if facing.get("status") == "uncertain" else how
+    return {v: f"{LABELS[v]} ({note})" if note else LABELS[v] for v in VIEWS}
 
 
 def _scalar_picture(points, values, out_png, frame, limit_mm, title, bar_title, size, views, cmap, mdc_mm=None,
@@ -147,6 +171,8 @@ def _scalar_picture(points, values, out_png, frame, limit_mm, title, bar_title, 
                    point_size=ps, render_points_as_spheres=True, show_scalar_bar=False)
         _camera(p, frame, points[keep], v, 0.85 * sub[0] / sub[1])
         p.add_text(LABELS[v], position="upper_left", font_size=10, color="black")
+        if not (title and k == 0):  # the first view's lower edge holds the title
+            _side_labels(p, frame, v, font_size=8)
     p.subplot(0, len(views) - 1)
     p.add_scalar_bar(title="mm", color="black", vertical=True, n_labels=5, fmt="%+.1f",
                      position_x=0.86, position_y=0.15, height=0.7, width=0.07)
@@ -249,7 +275,7 @@ def torso_pictures(torso_ply, out_dir, landmarks: dict | None = None) -> dict:
     torso = read_torso(torso_ply)
     a = analyse_torso(torso, landmarks=landmarks)
     out = Path(out_dir)
-    views = torso_views(torso, out, a.frame)
+    views = torso_views(torso, out, a.frame, titles=_facing_titles(a.report))
     asym = asymmetry_picture(torso, a.asymmetry_mm, out / "asymmetry.png", a.frame)
     return {"views": views, "asymmetry": asym, "indices": a.report}
 

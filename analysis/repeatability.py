@@ -101,14 +101,21 @@ def exceeds_mdc(change: float, mdc: float | dict | None) -> bool | None:
     return bool(abs(change) > mdc)
 
 
-def index_changes(earlier: dict, later: dict, mdc: dict | None = None, figures=INDEX_FIGURES) -> dict:
+def index_changes(earlier: dict, later: dict, mdc: dict | None = None, figures=INDEX_FIGURES,
+                  sides_agree: bool = True) -> dict:
     """Change of every index between two ``torso-indices/1`` reports, flagged against its MDC.
 
-    Returns ``{figure: {"earlier", "later", "change", "mdc", "exceeds_mdc"}}``.
+    Returns ``{figure: {"earlier", "later", "change", "mdc", "exceeds_mdc"}}``. ``sides_agree=False``
+    (the comparison's ``facing.consistent``): the two scans disagree on the patient's sides, and only the
+    figures that do not depend on them are compared.
     """
+    from .indices import SIDED
+
     fa, fb = flatten(earlier), flatten(later)
     out = {}
     for k in figures:
+        if not sides_agree and k.split(".")[0] in SIDED:
+            continue
         if k in fa and k in fb:
             m = (mdc or {}).get(k)
             m = m.get("mdc") if isinstance(m, dict) else m

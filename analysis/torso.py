@@ -25,13 +25,19 @@ class Torso:
     normals: np.ndarray
     data: dict = field(default_factory=dict)
     source: str = ""
+    # what the file says of the patient: {"posterior": [x, y, z], "back_towards": [...], "source": "rig"}
+    # from the rig's footplate (the reconstruction's PLY comment); None when unknown
+    patient: dict | None = None
 
     def __len__(self):
         return len(self.points)
 
     def transformed(self, R: np.ndarray, t: np.ndarray) -> "Torso":
         """The torso moved by ``x' = R x + t``."""
-        return Torso(self.points @ R.T + t, self.normals @ R.T, dict(self.data), self.source)
+        patient = None
+        if self.patient is not None:
+            patient = {**self.patient, "posterior": (np.asarray(self.patient["posterior"], float) @ R.T).tolist()}
+        return Torso(self.points @ R.T + t, self.normals @ R.T, dict(self.data), self.source, patient)
 
 
 class TorsoError(ValueError):
@@ -63,7 +69,11 @@ def read_torso(path, cfg: SurfaceConfig | None = None) -> Torso:
         raise TorsoError(f"{path}: only {int(good.sum())} valid points, a torso needs at least 500")
     normals = ply.get("normals")
     data = {k: np.asarray(v)[good] for k, v in ply.get("data", {}).items()}
-    return make_torso(pts[good], None if normals is None else normals[good], data, cfg, source=str(path))
+    torso = make_torso(pts[good], None if normals is None else normals[good], data, cfg, source=str(path))
+    from recon_engine.results import parse_posterior_comment
+
+    torso.patient = parse_posterior_comment(ply.get("comments", ()))
+    return torso
 
 
 def make_torso(points, normals=None, data=None, cfg: SurfaceConfig | None = None, source: str = "") -> Torso:

@@ -191,7 +191,9 @@ def comparison(request, patient_id):
         raise Http404("both visits need a reconstructed torso")
     comp = compare_reconstructions(earlier, later)
     mdc = _mdc(p.clinic)
-    changes = index_changes(earlier.indices or {}, later.indices or {}, mdc)
+    facing = comp.report.get("facing") or {}
+    changes = index_changes(earlier.indices or {}, later.indices or {}, mdc,
+                            sides_agree=facing.get("consistent", True))
     labels = {k: (label, unit) for k, label, unit in INDEX_ROWS}
     index_rows = [{"label": labels.get(k, (k, ""))[0], "unit": labels.get(k, ("", ""))[1], **c}
                   for k, c in changes.items()]
@@ -203,7 +205,7 @@ def comparison(request, patient_id):
                         "beyond": None if m is None or mean is None else abs(mean) > m})
     return render(request, "clinic/comparison.html", {
         "patient": p, "earlier": earlier_v, "later": later_v, "comparison": comp, "report": comp.report,
-        "regions": regions, "index_rows": index_rows, "growth": comp.report.get("growth"),
+        "regions": regions, "index_rows": index_rows, "facing": facing, "growth": comp.report.get("growth"),
         "repeat": comp.is_repeat})
 
 

@@ -168,6 +168,10 @@ class Rig:
     serial: str
     arms: tuple
     cameras: dict  # camera id -> CameraSpec
+    # where the patient stands: the arms the patient's back faces (the rig's footplate), e.g. ("A", "B");
+    # optional key ``"patient": {"back_towards": [...]}`` of rig.json (readers of the spec ignore it).
+    # It is the evidence of the patient's left and right that no shape noise can flip.
+    back_towards: tuple = ()
 
     @property
     def camera_ids(self) -> list:
@@ -193,6 +197,7 @@ def rig_to_dict(rig: Rig) -> dict:
         "cameras": {c.id: {"width": c.width, "height": c.height, "pixel_size_mm": c.pixel_size_mm,
                            "nominal_focal_mm": c.nominal_focal_mm, "model": c.model}
                     for c in (rig.cameras[i] for i in rig.camera_ids)},
+        **({"patient": {"back_towards": list(rig.back_towards)}} if rig.back_towards else {}),
     }
 
 
@@ -244,7 +249,28 @@ def rig_from_dict(obj: dict, where="rig.json") -> Rig:
             _number(_require(c, "nominal_focal_mm", where, ctx), where, f"camera {cam_id!r} nominal_focal_mm", positive=True),
             str(c.get("model", "")),
         )
-    return Rig(serial, tuple(arms), specs)
+    return Rig(serial, tuple(arms), specs, _back_towards(obj, seen_arms, where))
+
+
+def _back_towards(obj: dict, arms: set, where) -> tuple:
+    """The optional ``patient.back_towards`` of rig.json: arm ids the patient's back faces."""
+    patient = obj.get("patient")
+    if patient is None:
+        return ()
+    if not isinstance(patient, dict):
+        raise FormatError(where, "patient must be an object, e.g. {\"back_towards\": [\"A\", \"B\"]}")
+    towards = patient.get("back_towards")
+    if towards is None:
+        return ()
+    if not isinstance(towards, list) or not towards:
+        raise FormatError(where, "patient.back_towards must be a non-empty list of arm ids")
+    for a in towards:
+        if not isinstance(a, str) or a not in arms:
+            raise FormatError(where, f"patient.back_towards names {a!r}, which is no arm of the rig "
+                                     f"(arms: {', '.join(sorted(arms))})")
+    if len(set(towards)) != len(towards):
+        raise FormatError(where, "patient.back_towards names an arm twice")
+    return tuple(towards)
 
 
 def read_rig(path) -> Rig:

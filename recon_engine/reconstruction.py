@@ -345,6 +345,28 @@ def _arms_in_processes(capture, rig, calibration, order, cfg, workers, progress)
                 break
 
 
+def patient_posterior(rig: Rig, calibration: Calibration) -> dict | None:
+    """Where the patient's back faces, from the rig's footplate (``rig.back_towards``) and the cameras.
+
+    The horizontal unit vector (calibration frame, +Z up as the test field
+    stands) from the centre of all cameras to the centre of the cameras of
+    the arms the back faces; None when the rig does not say.
+    """
+    if not rig.back_towards:
+        return None
+    centres = {cid: np.asarray(c.C, float) for cid, c in calibration.cameras.items()}
+    every = [centres[c] for c in rig.camera_ids if c in centres]
+    back = [centres[c] for a in rig.arms if a.id in rig.back_towards for c in a.cameras if c in centres]
+    if not every or not back:
+        return None
+    v = np.mean(back, axis=0) - np.mean(every, axis=0)
+    v[2] = 0.0
+    if np.linalg.norm(v) < 1e-6:
+        return None
+    return {"posterior": (v / np.linalg.norm(v)).tolist(), "back_towards": list(rig.back_towards),
+            "source": "rig"}
+
+
 def register_arms(surfaces: dict, arm_reports: dict, failed: dict, rig: Rig, calibration: Calibration,
                   cfg: TorsoConfig | None = None, progress=lambda msg: None, arms_seconds: float = 0.0) -> dict:
     """Arm surfaces (each in the calibration frame, mm) registered by ICPatch, fused and meshed.
@@ -464,6 +486,8 @@ def register_arms(surfaces: dict, arm_reports: dict, failed: dict, rig: Rig, cal
             "iterations": multi["iterations"], "converged": multi["converged"],
         },
         "arms": arm_reports, "failed_arms": failed,
+        # the patient's facing from the rig's footplate: the analysis's evidence of left and right
+        "patient": patient_posterior(rig, calibration),
         "fused_from": int(len(pts)), "point_spacing_mm": spacing,
         "mesh": {"vertices": int(len(mesh[0])), "faces": int(len(mesh[1]))},
         "seconds": {"arms": t1 - t0, "registration": t2 - t1, "fusion": t3 - t2, "mesh": t4 - t3, "total": t4 - t0},

@@ -25,13 +25,44 @@ def write_torso(out_dir, result: dict) -> list[Path]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     frame = result["report"]["frame"]
+    comments = [f"torsoscan torso, mm, frame: {frame}"]
+    patient = result["report"].get("patient")
+    if patient:
+        # the torso file carries its own evidence of left and right, so `torsoscan indices TORSO.ply` has it
+        comments.append(posterior_comment(patient["posterior"], patient.get("back_towards", ())))
     write_ply(out / "torso.ply", result["points"], result["normals"], None,
               {"sigma_mm": result["sigma_mm"].astype(np.float32), "fused": result["count"].astype(np.int32)},
-              comments=[f"torsoscan torso, mm, frame: {frame}"])
+              comments=comments)
     V, F = result["mesh"]
     write_ply(out / "torso-mesh.ply", V, None, F, comments=[f"torsoscan display mesh (Poisson), mm, frame: {frame}"])
     write_json(out / "report.json", result["report"])
     return [out / name for name in TORSO_FILES]
+
+
+POSTERIOR_COMMENT = "torsoscan posterior"
+
+
+def posterior_comment(posterior, back_towards=()) -> str:
+    """The PLY comment that records where the patient's back faces (unit vector, the file's frame)."""
+    x, y, z = (float(v) for v in posterior)
+    arms = ",".join(back_towards) or "-"
+    return f"{POSTERIOR_COMMENT} {x:.6f} {y:.6f} {z:.6f} back_towards {arms}"
+
+
+def parse_posterior_comment(comments) -> dict | None:
+    """``{"posterior": [x, y, z], "back_towards": [...], "source": "rig"}`` from a PLY's comments, or None."""
+    for c in comments:
+        if c.startswith(POSTERIOR_COMMENT + " "):
+            parts = c.split()
+            try:
+                v = np.array([float(t) for t in parts[2:5]])
+            except ValueError:
+                return None
+            if v.shape != (3,) or not np.isfinite(v).all() or np.linalg.norm(v[:2]) < 1e-6:
+                return None
+            arms = parts[6].split(",") if len(parts) > 6 and parts[5] == "back_towards" and parts[6] != "-" else []
+            return {"posterior": (v / np.linalg.norm(v)).tolist(), "back_towards": arms, "source": "rig"}
+    return None
 
 
 def arm_surface_bytes(surface: PointSurface) -> bytes:

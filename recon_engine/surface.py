@@ -280,7 +280,7 @@ def write_ply(path, points, normals=None, faces=None, data: dict | None = None, 
 
 
 def read_ply(path) -> dict:
-    """Vertices (``points``, ``normals`` when present, other scalars) and faces of a PLY file.
+    """Vertices (``points``, ``normals`` when present, other scalars), faces and header comments of a PLY file.
 
     Binary little-endian and ASCII files with triangle faces.
     """
@@ -291,12 +291,14 @@ def read_ply(path) -> dict:
         raise ValueError(f"{path}: not a PLY file")
     body_start = raw.index(b"\n", end) + 1
     lines = raw[:end].decode("ascii", "replace").splitlines()
-    fmt, elements, current = None, [], None
+    fmt, elements, current, comments = None, [], None, []
     for line in lines:
         parts = line.split()
         if not parts:
             continue
-        if parts[0] == "format":
+        if parts[0] == "comment":
+            comments.append(line.strip()[len("comment"):].strip())
+        elif parts[0] == "format":
             fmt = parts[1]
         elif parts[0] == "element":
             current = {"name": parts[1], "count": int(parts[2]), "props": []}
@@ -353,4 +355,5 @@ def read_ply(path) -> dict:
     if {"nx", "ny", "nz"} <= set(v):
         res["normals"] = np.column_stack([v["nx"], v["ny"], v["nz"]])
     res["data"] = {k: a for k, a in v.items() if k not in ("x", "y", "z", "nx", "ny", "nz")}
+    res["comments"] = comments
     return res

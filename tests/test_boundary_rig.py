@@ -59,3 +59,15 @@ def test_it_rejects_invalid_json_with_the_line(tmp_path):
 def test_it_ignores_unknown_keys(tmp_path):
     rig = read_rig(_bad(tmp_path, lambda o: o.update(installed_by="someone")))
     assert rig.serial == "RIG-T"
+
+
+def test_it_reads_and_writes_where_the_patients_back_faces(tmp_path):
+    rig = read_rig(_bad(tmp_path, lambda o: o.update(patient={"back_towards": ["B", "A"]})))
+    assert rig.back_towards == ("B", "A")
+    write_rig(tmp_path / "again.json", rig)
+    assert read_rig(tmp_path / "again.json") == rig
+
+
+def test_it_rejects_a_patient_back_towards_an_unknown_arm(tmp_path):
+    with pytest.raises(FormatError, match=r"patient\.back_towards names 'Z', which is no arm of the rig"):
+        read_rig(_bad(tmp_path, lambda o: o.update(patient={"back_towards": ["Z"]})))

@@ -101,7 +101,11 @@ def make_rig(cfg: ScenarioConfig, rng: np.random.Generator, centre_height_mm: fl
         pattern, _, _ = make_pattern(pc.width, pc.height, seed=cfg.seed * 100 + k)
         projectors[arm_id] = Projector(f"P{arm_id}", arm_id, model, pattern)
         arms.append(Arm(arm_id, tuple(ids), f"P{arm_id}"))
-    rig = Rig(rc.serial, tuple(arms), specs)
+    # the footplate: the patient stands facing -Y, back towards +Y (azimuth 90 deg); the rig names the arms
+    # within 50 deg of that (arms A and B of the default layout)
+    azimuths = {a.id: rc.first_arm_azimuth_deg + 360.0 * k / len(rc.arms) for k, a in enumerate(arms)}
+    back = tuple(a for a, az in azimuths.items() if abs((az - 90.0 + 180.0) % 360.0 - 180.0) <= 50.0)
+    rig = Rig(rc.serial, tuple(arms), specs, back)
     return RigTruth(rig, cameras, projectors, pivots)
 
 
