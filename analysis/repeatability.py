@@ -53,7 +53,8 @@ def mdc_from_index_pairs(pairs, figures=INDEX_FIGURES) -> dict:
     for k, d in diffs.items():
         d = np.asarray(d)
         sem = float(np.sqrt(np.sum(d ** 2) / (2 * len(d))))
-        out[k] = {"sem": sem, "mdc": Z95 * math.sqrt(2) * sem, "n": int(len(d))}
+        mdc = Z95 * math.sqrt(2) * sem
+        out[k] = {"sem": sem, "mdc": mdc, "n": int(len(d)), "ci95": mdc_interval(mdc, len(d))}
     return out
 
 
@@ -83,13 +84,34 @@ def mdc_from_comparisons(reports) -> dict:
         last = k.rsplit(".", 1)[-1]
         if last == "mean":  # a signed change, zero without change
             sd = float(np.sqrt(np.mean(v ** 2)))
-            out[k] = {"sem": sd / math.sqrt(2), "mdc": Z95 * sd, "n": int(len(v)), "kind": "signed change"}
+            out[k] = {"sem": sd / math.sqrt(2), "mdc": Z95 * sd, "n": int(len(v)), "kind": "signed change",
+                      "ci95": mdc_interval(Z95 * sd, len(v))}
         else:  # a spread: the repeat level plus its own variability
             level = float(np.mean(np.abs(v)))
             spread = float(np.std(v, ddof=1)) if len(v) > 1 else 0.5 * level
             out[k] = {"sem": spread / math.sqrt(2), "mdc": level + Z95 * spread, "n": int(len(v)),
                       "kind": "spread; the MDC is a threshold on the figure itself"}
     return out
+
+
+# Repeat pairs a minimal detectable change must rest on before anything is flagged with it. An SEM from n
+# pairs has n degrees of freedom: its 95 % interval is SEM x [sqrt(n / chi2_0.975), sqrt(n / chi2_0.025)], i.e.
+# x[0.45, 31.9] from one pair, x[0.62, 2.09] from five and x[0.70, 1.75] from ten, where the upper bound first
+# falls below twice the estimate: with fewer, a flag says more about the estimate than about the patient.
+MIN_REPEAT_PAIRS = 10
+
+
+def mdc_interval(mdc: float, n: int) -> list:
+    """95 % confidence interval of an MDC estimated from ``n`` repeat pairs (chi-square on n degrees of freedom)."""
+    from scipy.stats import chi2
+
+    n = max(int(n), 1)
+    return [float(mdc * math.sqrt(n / chi2.ppf(0.975, n))), float(mdc * math.sqrt(n / chi2.ppf(0.025, n)))]
+
+
+def usable_mdc(mdc: dict, min_pairs: int = MIN_REPEAT_PAIRS) -> dict:
+    """The MDCs that rest on at least ``min_pairs`` repeat pairs (the others flag nothing)."""
+    return {k: v for k, v in mdc.items() if (v.get("n") or 0) >= min_pairs}
 
 
 def exceeds_mdc(change: float, mdc: float | dict | None) -> bool | None:

@@ -52,16 +52,26 @@ def analyse_reconstruction(rec: Reconstruction) -> Reconstruction:
     return rec
 
 
-def clinic_mdc(clinic) -> dict:
-    """Minimal detectable change of every figure from the clinic's repeat pairs: figure -> {"mdc", "sem", "n"}."""
-    from analysis.repeatability import mdc_from_comparisons, mdc_from_index_pairs
+def clinic_mdc(clinic, usable_only: bool = True) -> dict:
+    """Minimal detectable change of every figure from the clinic's repeat pairs: figure -> {"mdc", "sem", "n", "ci95"}.
+
+    ``usable_only``: only the figures whose MDC rests on enough repeat pairs
+    (:data:`analysis.repeatability.MIN_REPEAT_PAIRS`) to flag anything; one pair never flags.
+    """
+    from analysis.repeatability import mdc_from_comparisons, mdc_from_index_pairs, usable_mdc
 
     pairs = [c for c in Comparison.objects.filter(later__session__rig__clinic=clinic)
              .select_related("earlier__session", "later__session") if c.is_repeat]
     mdc = mdc_from_comparisons([c.report for c in pairs])
     mdc.update(mdc_from_index_pairs([(c.earlier.indices, c.later.indices) for c in pairs
                                      if c.earlier.indices and c.later.indices]))
-    return mdc
+    return usable_mdc(mdc) if usable_only else mdc
+
+
+def repeat_pairs(clinic) -> int:
+    """How many same-visit repeat pairs the clinic's rigs have given (what its noise verdicts rest on)."""
+    return sum(1 for c in Comparison.objects.filter(later__session__rig__clinic=clinic)
+               .select_related("earlier__session", "later__session") if c.is_repeat)
 
 
 def compare_reconstructions(earlier: Reconstruction, later: Reconstruction) -> Comparison:

@@ -74,6 +74,15 @@ def _mdc(clinic):
     return clinic_mdc(clinic)
 
 
+def _noise(clinic) -> dict:
+    """What the noise verdicts rest on: the clinic's repeat pairs and how many are needed before any flag."""
+    from analysis.repeatability import MIN_REPEAT_PAIRS
+
+    from .analysis_step import repeat_pairs
+
+    return {"pairs": repeat_pairs(clinic), "needed": MIN_REPEAT_PAIRS}
+
+
 @login_required
 def patients(request):
     """The patients of the user's clinics, with a search by name or identifier."""
@@ -107,6 +116,7 @@ def patient(request, patient_id):
     with_torso = [x["visit"] for x in visits if x["rec"]]
     return render(request, "clinic/patient.html", {
         "patient": p, "visits": visits, "rows": rows, "latest": latest, "with_torso": with_torso,
+        "noise": _noise(p.clinic),
         "earlier_default": with_torso[0].pk if with_torso else None,
         "later_default": with_torso[-1].pk if with_torso else None})
 
@@ -205,7 +215,7 @@ def comparison(request, patient_id):
                         "beyond": None if m is None or mean is None else abs(mean) > m})
     return render(request, "clinic/comparison.html", {
         "patient": p, "earlier": earlier_v, "later": later_v, "comparison": comp, "report": comp.report,
-        "regions": regions, "index_rows": index_rows, "facing": facing, "growth": comp.report.get("growth"),
+        "regions": regions, "index_rows": index_rows, "facing": facing, "noise": _noise(p.clinic), "growth": comp.report.get("growth"),
         "repeat": comp.is_repeat})
 
 

@@ -39,8 +39,11 @@ def test_repeat_pairs_give_the_mdc_and_later_visits_are_compared_with_it(clinic)
     pairs = {(x.earlier_id, x.later_id): x for x in Comparison.objects.all()}
     assert set(pairs) == {(a.pk, b.pk), (b.pk, c.pk)}  # the later visit against the latest baseline torso
     assert pairs[(a.pk, b.pk)].is_repeat and not pairs[(b.pk, c.pk)].is_repeat
-    mdc = clinic_mdc(clinic)
+    mdc = clinic_mdc(clinic, usable_only=False)
     assert mdc["average_normal_distance_mm"]["n"] == 1 and "surface_rotation_deg.max" in mdc
+    # one repeat pair flags nothing: its MDC's 95 % interval spans a factor of 70
+    lo, hi = mdc["surface_rotation_deg.max"]["ci95"]
+    assert hi / lo > 50 and clinic_mdc(clinic) == {}
     change = pairs[(b.pk, c.pk)].report
     assert change["average_normal_distance_mm"] > pairs[(a.pk, b.pk)].report["average_normal_distance_mm"]
     assert set(pairs[(b.pk, c.pk)].pictures) == {"deformation"}

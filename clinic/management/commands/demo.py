@@ -134,9 +134,16 @@ class Command(BaseCommand):
 
         mdc = clinic_mdc(clinic)
         self.say("\nfindings")
-        self.say("  (the demo's reduced rig gives sparse torsos, about 5 mm between points, and its MDC comes from\n"
-                 "   a single re-scan: the figures show the workflow, not the scanner's accuracy; see\n"
-                 "   docs/analysis.md for the paper-scale validation)")
+        from analysis.repeatability import MIN_REPEAT_PAIRS
+
+        from clinic.analysis_step import repeat_pairs
+
+        self.say("  (the demo's reduced rig gives sparse torsos, about 5 mm between points: the figures show the\n"
+                 "   workflow, not the scanner's accuracy; see docs/analysis.md for the paper-scale validation)")
+        pairs = repeat_pairs(clinic)
+        if pairs < MIN_REPEAT_PAIRS:
+            self.say(f"  noise verdicts need {MIN_REPEAT_PAIRS} same-visit re-scans; this clinic has {pairs}: "
+                     "nothing is flagged yet")
         for comp in Comparison.objects.filter(later__session__visit__patient_id=patient["id"]).order_by("created"):
             r = comp.report
             kind = "same-visit re-scan (repeatability)" if comp.is_repeat else "follow-up against baseline"
@@ -144,13 +151,14 @@ class Command(BaseCommand):
                      f"{r['matched_fraction']:.0%} matched, signed mean {r['signed_distance_mm']['mean']:+.2f} mm")
             if comp.is_repeat:
                 continue
-            changes = index_changes(comp.earlier.indices or {}, comp.later.indices or {}, mdc)
+            changes = index_changes(comp.earlier.indices or {}, comp.later.indices or {}, mdc,
+                                    sides_agree=(r.get("facing") or {}).get("consistent", True))
             for k in ("surface_rotation_deg.max", "lateral_deviation_mm.max", "spine_lateral_deviation_mm.max", "hump_mm",
                       "asymmetry_mm"):
                 c = changes.get(k)
                 if c:
                     flag = ("BEYOND the MDC" if c["exceeds_mdc"] else
-                            "within the MDC" if c["exceeds_mdc"] is False else "no MDC")
+                            "within the MDC" if c["exceeds_mdc"] is False else "no verdict yet")
                     self.say(f"    {k}: {c['earlier']:+.1f} -> {c['later']:+.1f} (change {c['change']:+.1f}, "
                              f"MDC {c['mdc'] if c['mdc'] is None else round(c['mdc'], 2)}): {flag}")
         n = Reconstruction.objects.filter(session__visit__patient_id=patient["id"]).count()
