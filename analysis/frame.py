@@ -223,7 +223,9 @@ def detect_posterior(points: np.ndarray, facing: str | None = None, prior: dict 
                           "shape_agrees": bool(shape_sign == sign) if shape_status == "certain" else None}
         info = {"method": "rig", "back_towards": prior.get("back_towards") or [], "status": "certain",
                 "shape_agrees": bool(shape_sign == sign) if shape_status == "certain" else None, "cues": cues}
-        if shape_status == "certain" and shape_sign != sign:
+        # only both shape cues together overrule the footplate: on a sparse or holed scan one cue alone can
+        # turn with a degree of sway (the demo's reduced rig: the front's sagitta went from -12 to -2 mm)
+        if sag_vote and prof_vote == sag_vote and sag_vote != sign:
             info["status"] = "uncertain"
             info["reason"] = (f"the rig's footplate puts the patient's back towards arms {arms}, but the torso's "
                               "shape says the back faces the other way: was the patient standing the other way "
