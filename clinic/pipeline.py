@@ -510,7 +510,8 @@ def redispatch_stalled(older_than=None, now=None) -> list:
 
     now = now or _now()
     due = now - timedelta(seconds=settings.JOB_REDISPATCH_SECONDS if older_than is None else older_than)
-    expired = Q(state=Job.RUNNING, lease_until__lt=now)
+    # a lapsed claim is sent at once (unless sent since it lapsed), then again once per period
+    expired = Q(state=Job.RUNNING, lease_until__lt=now) & (Q(dispatched__lt=F("lease_until")) | Q(dispatched__lt=due))
     sent = []
 
     def resend(rows, row, task, *args):
@@ -523,7 +524,7 @@ def redispatch_stalled(older_than=None, now=None) -> list:
 
     for job in Job.objects.filter(state=Job.QUEUED, dispatched__lt=due):
         resend(Job.objects, job, _entry_task(job), job.pk)
-    for job in Job.objects.filter(expired, dispatched__lt=due):
+    for job in Job.objects.filter(expired):
         if job.kind == Job.CALIBRATION:
             resend(Job.objects, job, tasks.run_calibration, job.pk)
         elif job.stage == "arms":  # died while starting, before the arms existed
@@ -534,7 +535,7 @@ def redispatch_stalled(older_than=None, now=None) -> list:
     for job in running.filter(stage="registration queued", dispatched__lt=due):
         resend(Job.objects, job, tasks.register, job.pk)
     for arm in ArmTask.objects.filter(Q(job__in=running.filter(stage="arms", lease_until=None))
-                                      & (Q(state=Job.QUEUED) | expired), dispatched__lt=due):
+                                      & (Q(state=Job.QUEUED, dispatched__lt=due) | expired)):
         resend(ArmTask.objects, arm, tasks.reconstruct_arm, arm.job_id, arm.arm)
     # the last arm's worker died between finishing its arm and handing over: hand over now
     for job in running.filter(stage="arms", lease_until=None).exclude(arms=None).exclude(

@@ -79,7 +79,7 @@ class Clinic:
         self.server = subprocess.Popen(
             [sys.executable, "manage.py", "runserver", "--noreload", f"127.0.0.1:{self.port}"], cwd=ROOT,
             env=self.env, stdout=open(self.logs / "server.log", "w"), stderr=subprocess.STDOUT)
-        self.workers = []
+        self.workers, self.others = [], []
         wait_for_port(self.port)
         self.api = HttpApi(f"http://127.0.0.1:{self.port}")
         self.api.login("alice", "pw-alice")
@@ -93,6 +93,14 @@ class Clinic:
             cwd=ROOT, env=self.env, stdout=open(self.logs / f"worker{n}.log", "w"), stderr=subprocess.STDOUT)
         self.workers.append(w)
         return w
+
+    def start_beat(self):
+        """Celery beat (the database scheduler, as in production): it runs the sweeper on its schedule."""
+        beat = subprocess.Popen([sys.executable, "-m", "celery", "-A", "clinic", "beat", "--loglevel", "info"],
+                                cwd=ROOT, env=self.env, stdout=open(self.logs / "beat.log", "w"),
+                                stderr=subprocess.STDOUT)
+        self.others.append(beat)
+        return beat
 
     def worker_log(self) -> str:
         return "".join(p.read_text() for p in sorted(self.logs.glob("worker*.log")))
@@ -111,7 +119,7 @@ class Clinic:
         return self.var / "media"
 
     def close(self):
-        stop_processes([self.server, *self.workers], timeout=30)
+        stop_processes([self.server, *self.workers, *self.others], timeout=30)
         import psycopg
 
         with psycopg.connect(dbname="postgres", host="127.0.0.1", user="postgres", autocommit=True) as conn:
