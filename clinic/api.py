@@ -614,7 +614,11 @@ def create_visit(request, patient_id: int, body: VisitIn):
 
 @api.post("/jobs/{job_id}/rerun", auth=django_auth, tags=["staff"])
 def rerun_job(request, job_id: str):
-    """Run a failed job again (its capture was kept), e.g. after the rig was calibrated."""
+    """Run a failed job again (its capture was kept), e.g. after the rig was calibrated.
+
+    A job stuck running whose worker died (every lease lapsed) is re-run too;
+    409 while a worker holds it. A queued job is sent to the broker again.
+    """
     job = get_object_or_404(_jobs_for(request), uid=_uuid(job_id))
     _member_clinic(request, job.rig.clinic_id)
     try:

@@ -160,8 +160,13 @@ def rerun(job: Job) -> Job:
     """Put a failed (or finished) job back in the queue; its capture was kept.
 
     A job still running can be re-run once no worker holds it (every lease
-    lapsed): its worker died.
+    lapsed): its worker died. A queued job is sent again (it may never have
+    reached the broker; a second delivery is refused by its claim).
     """
+    if Job.objects.filter(pk=job.pk, state=Job.QUEUED).update(dispatched=_now()):
+        job.refresh_from_db()
+        send(_entry_task(job), job.pk)
+        return job
     with transaction.atomic():
         # a calibration that succeeded is history (stability checks refer to it): calibrate anew instead
         rerunnable = [Job.FAILED] if job.kind == Job.CALIBRATION else [Job.FAILED, Job.SUCCEEDED]

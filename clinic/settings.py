@@ -200,5 +200,7 @@ CELERY_BEAT_SCHEDULE = {
     "redispatch-stalled-jobs": {
         "task": "clinic.tasks.redispatch_stalled",
         "schedule": JOB_SWEEP_SECONDS,
+        # a sweep still waiting behind busy workers when the next one is due is dropped, not piled up
+        "options": {"expire_seconds": JOB_SWEEP_SECONDS},
     },
 }

@@ -8,6 +8,8 @@ and a Celery worker.
 
 import time
 
+from django.conf import settings
+
 from tests.outage import clinic_with_own_broker, images_in_store, wait_until
 from tests.service_flow import register_rig, upload_capture, wait_for_job
 
@@ -34,6 +36,9 @@ def test_it_runs_a_calibration_finalized_while_the_broker_was_down(tmp_path, rig
         # the sweeper itself survives the outage: nothing sent, the job still queued
         assert "0 step(s) re-dispatched" in clinic.sweep("--older-than", "0")
         assert api.call("GET", f"/api/jobs/{job_id}", key=key).json()["state"] == "queued"
+        # so does a re-run asked for by staff: answered, the job still queued
+        r = api.call("POST", f"/api/jobs/{job_id}/rerun")
+        assert r.status == 200 and r.json()["state"] == "queued", r.content
 
         broker.start()
         back = time.time()
@@ -50,3 +55,10 @@ def test_it_runs_a_calibration_finalized_while_the_broker_was_down(tmp_path, rig
         (started,), = clinic.sql("SELECT extract(epoch from started) FROM clinic_job")
         print(f"uploads during the outage {upload_seconds:.1f} s; once the broker was back, the calibration was "
               f"claimed after {float(started) - back:.1f} s and done after {done_after:.1f} s")
+
+
+def test_the_sweeper_is_on_the_beat_schedule():
+    entry = settings.CELERY_BEAT_SCHEDULE["redispatch-stalled-jobs"]
+    assert entry["task"] == "clinic.tasks.redispatch_stalled" and entry["schedule"] == settings.JOB_SWEEP_SECONDS
+    # at least one sweep per period, or a step would wait longer than JOB_REDISPATCH_SECONDS to be sent again
+    assert settings.JOB_SWEEP_SECONDS <= settings.JOB_REDISPATCH_SECONDS
