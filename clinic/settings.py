@@ -170,11 +170,13 @@ CELERY_TASK_REJECT_ON_WORKER_LOST = True
 CELERY_WORKER_PREFETCH_MULTIPLIER = 1
 CELERY_TASK_SOFT_TIME_LIMIT = envint("CELERY_TASK_SOFT_TIME_LIMIT", 3600)
 CELERY_TASK_TIME_LIMIT = envint("CELERY_TASK_TIME_LIMIT", 3900)
-# a task not acknowledged within this time is redelivered: above the hard limit
-CELERY_BROKER_TRANSPORT_OPTIONS = {"visibility_timeout": CELERY_TASK_TIME_LIMIT + 600}
+# a task not acknowledged within this time is redelivered: above the hard limit. A Redis that does not answer
+# is given up on (2 s to connect, 5 s for a reply; a worker's polls wait 1 s), so it cannot hold a request.
+CELERY_BROKER_TRANSPORT_OPTIONS = {"visibility_timeout": CELERY_TASK_TIME_LIMIT + 600,
+                                   "socket_connect_timeout": 2, "socket_timeout": 5}
 CELERY_TASK_DEFAULT_QUEUE = os.environ.get("CELERY_QUEUE", "torsoscan")
 # A broker that is down must not hold a request: publishing gives up after about a second (the job's row is the
-# record of work; the sweeper below sends it when the broker is back).
+# record of work; the sweeper below sends it when the broker is back). The connection timeout is AMQP's.
 CELERY_BROKER_CONNECTION_TIMEOUT = 2
 CELERY_TASK_PUBLISH_RETRY_POLICY = {"max_retries": 2, "interval_start": 0, "interval_step": 0.5, "interval_max": 0.5}
 CELERY_TASK_SERIALIZER = "json"

@@ -6,11 +6,15 @@ started again empty, as a broker restarted without persistence), a web server
 and a Celery worker.
 """
 
+import os
+import signal
+import subprocess
+import sys
 import time
 
 from django.conf import settings
 
-from tests.outage import clinic_with_own_broker, images_in_store, wait_until
+from tests.outage import ROOT, OwnRedis, clinic_with_own_broker, images_in_store, wait_until
 from tests.service_flow import register_rig, upload_capture, wait_for_job
 from tests.test_service_flow_postgres import _manage
 
@@ -74,3 +78,22 @@ def test_the_sweeper_is_on_the_beat_schedule():
     assert entry["task"] == "clinic.tasks.redispatch_stalled" and entry["schedule"] == settings.JOB_SWEEP_SECONDS
     # at least one sweep per period, or a step would wait longer than JOB_REDISPATCH_SECONDS to be sent again
     assert settings.JOB_SWEEP_SECONDS <= settings.JOB_REDISPATCH_SECONDS
+
+
+def test_it_gives_up_on_a_broker_that_does_not_answer(tmp_path):
+    # a hung Redis (stopped: connections are accepted, nothing is answered) must not hold a request
+    broker = OwnRedis(tmp_path / "redis")
+    broker.start()
+    broker.proc.send_signal(signal.SIGSTOP)
+    try:
+        code = ("import time, django; django.setup(); from clinic import pipeline, tasks; t = time.time(); "
+                "print(pipeline.send(tasks.ping), round(time.time() - t, 1))")
+        env = {**os.environ, "CELERY_BROKER_URL": broker.url, "DJANGO_SETTINGS_MODULE": "clinic.settings",
+               "TORSOSCAN_VAR": str(tmp_path / "var")}
+        out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True,
+                             timeout=120)
+        sent, seconds = out.stdout.split()[-2:]
+        assert sent == "False" and float(seconds) < 15, out.stdout + out.stderr[-2000:]
+    finally:
+        broker.proc.send_signal(signal.SIGCONT)
+        broker.stop()
