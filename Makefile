@@ -14,6 +14,7 @@ DEMO := demo-out
 # What a clinic does, on the embedded default (SQLite under var/, jobs in-process):
 # a reduced rig calibrated, a patient with a baseline, a re-scan and a follow-up,
 # all through the API; then `.venv/bin/python manage.py runserver` shows the pages.
+demo: export DEBUG = true
 demo: $(STAMP)
 	$(PY) manage.py migrate --noinput
 	$(PY) manage.py demo --out $(DEMO) --seed 11

@@ -6,6 +6,7 @@ The embedded default needs nothing: SQLite under ``var/``, files under
 """
 
 import os
+from datetime import timedelta
 from pathlib import Path
 from urllib.parse import unquote, urlparse
 
@@ -61,12 +62,30 @@ def database_from_url(url, name="DATABASE_URL"):
     raise ImproperlyConfigured(f"{name}={url!r}: unsupported scheme {parsed.scheme!r} (use sqlite or postgres)")
 
 
-DEBUG = envbool("DEBUG", True)
+DEVELOPMENT_SECRET_KEY = "insecure-development-key-do-not-use-in-production"
+
+
+def check_secret_key(key):
+    """Refuse a key that could be guessed (Django's own --deploy criteria, and the development default)."""
+    if not key:
+        problem = "is not set"
+    elif key == DEVELOPMENT_SECRET_KEY or key.startswith("django-insecure"):
+        problem = "is a development key"
+    elif len(key) < 50 or len(set(key)) < 5:
+        problem = "is too weak (use 50 characters or more, at least 5 different ones)"
+    else:
+        return key
+    raise ImproperlyConfigured(f"SECRET_KEY {problem}; DEBUG is off, so set a random one, e.g. "
+                               "python -c 'import secrets; print(secrets.token_urlsafe(50))'")
+
+
+# Off unless asked for: `make demo` and the tests (pytest-env, pyproject.toml) set DEBUG=true.
+DEBUG = envbool("DEBUG", False)
 SECRET_KEY = os.environ.get("SECRET_KEY", "")
-if not SECRET_KEY:
-    if not DEBUG:
-        raise ImproperlyConfigured("SECRET_KEY must be set when DEBUG is off")
-    SECRET_KEY = "insecure-development-key-do-not-use-in-production"
+if DEBUG:
+    SECRET_KEY = SECRET_KEY or DEVELOPMENT_SECRET_KEY
+else:
+    check_secret_key(SECRET_KEY)
 ALLOWED_HOSTS = [h for h in os.environ.get("ALLOWED_HOSTS", "localhost,127.0.0.1,testserver").split(",") if h]
 
 VAR_DIR = Path(os.environ.get("TORSOSCAN_VAR", BASE_DIR / "var"))
@@ -80,18 +99,54 @@ INSTALLED_APPS = [
     "django.contrib.messages",
     "django.contrib.staticfiles",
     "django_celery_beat",
+    "axes",  # login throttling and lockout (below)
+    "ninja",  # /api/docs from its bundled static files (no CDN, no inline script)
     "clinic",
 ]
 
 MIDDLEWARE = [
     "django.middleware.security.SecurityMiddleware",
+    "whitenoise.middleware.WhiteNoiseMiddleware",
+    "clinic.middleware.SecurityHeadersMiddleware",
     "django.contrib.sessions.middleware.SessionMiddleware",
     "django.middleware.common.CommonMiddleware",
     "django.middleware.csrf.CsrfViewMiddleware",
     "django.contrib.auth.middleware.AuthenticationMiddleware",
     "django.contrib.messages.middleware.MessageMiddleware",
     "django.middleware.clickjacking.XFrameOptionsMiddleware",
+    "axes.middleware.AxesMiddleware",  # last: turns a locked-out sign-in into the lockout page
 ]
+
+# Sign-ins (the pages and the admin; the rig's bearer keys are not a login) are throttled per user name:
+# after LOGIN_FAILURE_LIMIT failures the account is locked for LOGIN_COOLOFF_MINUTES, whatever the address.
+# Not per address: a clinic's workstations share one address behind its NAT (and behind a proxy every client
+# has the proxy's), so a few typos would lock the whole clinic out; hence axes.W006 is silenced below.
+AUTHENTICATION_BACKENDS = ["axes.backends.AxesStandaloneBackend", "django.contrib.auth.backends.ModelBackend"]
+AXES_FAILURE_LIMIT = envint("LOGIN_FAILURE_LIMIT", 5)
+AXES_COOLOFF_TIME = timedelta(minutes=envint("LOGIN_COOLOFF_MINUTES", 15))
+AXES_LOCKOUT_PARAMETERS = ["username"]
+SILENCED_SYSTEM_CHECKS = ["axes.W006"]
+AXES_RESET_ON_SUCCESS = True
+AXES_LOCKOUT_TEMPLATE = "registration/locked_out.html"
+
+# HTTPS in production (each on when DEBUG is off, each can be turned off, e.g. behind a proxy that already
+# redirects). Behind a proxy that terminates TLS, SECURE_PROXY_SSL_HEADER names the header it sets
+# (X-Forwarded-Proto: https); set it only there, since a client could send that header itself.
+SECURE_SSL_REDIRECT = envbool("SECURE_SSL_REDIRECT", not DEBUG)
+SESSION_COOKIE_SECURE = envbool("SESSION_COOKIE_SECURE", not DEBUG)
+CSRF_COOKIE_SECURE = envbool("CSRF_COOKIE_SECURE", not DEBUG)
+SECURE_HSTS_SECONDS = envint("SECURE_HSTS_SECONDS", 0 if DEBUG else 365 * 24 * 3600)
+SECURE_HSTS_INCLUDE_SUBDOMAINS = envbool("SECURE_HSTS_INCLUDE_SUBDOMAINS", not DEBUG)
+SECURE_HSTS_PRELOAD = envbool("SECURE_HSTS_PRELOAD", not DEBUG)
+if os.environ.get("SECURE_PROXY_SSL_HEADER"):
+    SECURE_PROXY_SSL_HEADER = ("HTTP_" + os.environ["SECURE_PROXY_SSL_HEADER"].upper().replace("-", "_"), "https")
+SECURE_CONTENT_TYPE_NOSNIFF = True
+SECURE_REFERRER_POLICY = "same-origin"
+X_FRAME_OPTIONS = "DENY"
+# Shared clinic workstations: a session ends after SESSION_IDLE_MINUTES without a request, and with the browser.
+SESSION_COOKIE_AGE = envint("SESSION_IDLE_MINUTES", 15) * 60
+SESSION_SAVE_EVERY_REQUEST = True
+SESSION_EXPIRE_AT_BROWSER_CLOSE = True
 
 ROOT_URLCONF = "clinic.urls"
 WSGI_APPLICATION = "clinic.wsgi.application"
@@ -116,6 +171,10 @@ USE_TZ = True
 
 STATIC_URL = "static/"
 STATIC_ROOT = Path(os.environ.get("STATIC_ROOT", VAR_DIR / "static"))
+STATIC_ROOT.mkdir(parents=True, exist_ok=True)
+# WhiteNoise serves the apps' static files (the pages' stylesheet, the admin's, /api/docs') straight from their
+# folders: no collectstatic step, and the same in production as under runserver.
+WHITENOISE_USE_FINDERS = True
 MEDIA_ROOT = Path(os.environ.get("MEDIA_ROOT", VAR_DIR / "media"))
 MEDIA_URL = "media/"
 
