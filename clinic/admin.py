@@ -1,4 +1,12 @@
+"""The Django admin: every record of every clinic, so for superusers only.
+
+Clinic administrators manage their own clinic's members and rig keys on the
+clinic's pages (``clinic/views.py``), which are scoped to their clinics.
+"""
+
+from django import forms
 from django.contrib import admin, messages
+from django.contrib.admin.forms import AdminAuthenticationForm
 
 from . import pipeline
 from .models import (ArmTask, Calibration, Camera, CaptureImage, CaptureSession, Clinic, Comparison, Job, Member,
@@ -156,3 +164,21 @@ class ReconstructionAdmin(admin.ModelAdmin):
 @admin.register(Comparison)
 class ComparisonAdmin(admin.ModelAdmin):
     list_display = ["earlier", "later", "created"]
+
+
+def _superusers_only(request):
+    return request.user.is_active and request.user.is_superuser
+
+
+class SuperuserAuthenticationForm(AdminAuthenticationForm):
+    """The admin's sign-in: staff that are not superusers are refused here too, not signed in and bounced."""
+
+    def confirm_login_allowed(self, user):
+        super().confirm_login_allowed(user)
+        if not user.is_superuser:
+            raise forms.ValidationError("The admin is for superusers; your clinic's pages are at /.",
+                                        code="not_superuser")
+
+
+admin.site.has_permission = _superusers_only
+admin.site.login_form = SuperuserAuthenticationForm

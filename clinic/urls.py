@@ -18,7 +18,13 @@ urlpatterns = [
     path("visits/<int:visit_id>/", views.visit, name="visit"),
     path("visits/<int:visit_id>/landmarks", views.correct_landmarks, name="correct_landmarks"),
     path("rigs/<str:serial>/", views.rig, name="rig"),
+    path("rigs/<str:serial>/keys", views.issue_rig_key, name="issue_rig_key"),
+    path("rigs/<str:serial>/keys/<str:prefix>/revoke", views.revoke_rig_key, name="revoke_rig_key"),
     path("rigs/<str:serial>/stability.svg", views.rig_stability_chart, name="rig_stability_chart"),
     path("pictures/<str:kind>/<int:pk>/<str:name>.png", views.picture, name="picture"),
     path("jobs/<uuid:job_id>/rerun", views.rerun, name="rerun"),
+    path("clinics/<int:clinic_id>/members/", views.members, name="members"),
+    path("clinics/<int:clinic_id>/members/add", views.add_member, name="add_member"),
+    path("clinics/<int:clinic_id>/members/<int:member_id>/role", views.change_member_role, name="change_member_role"),
+    path("clinics/<int:clinic_id>/members/<int:member_id>/remove", views.remove_member, name="remove_member"),
 ]

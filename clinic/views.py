@@ -1,24 +1,71 @@
 """The clinicians' pages: patients, a patient's history, a visit, a comparison, a rig.
 
 Every query goes through ``clinics_of(request.user)``: anything outside the
-user's clinics is a 404. Pages are plain HTML (a running job's page refreshes
-itself with a meta tag, no JavaScript needed).
+user's clinics is a 404. What a member may change depends on their role, and
+the pages ask the API's rule (below), so a page never allows what the API
+forbids. Pages are plain HTML (a running job's page refreshes itself with a
+meta tag, no JavaScript needed).
 """
 
 import io
+import json
 import tempfile
 from pathlib import Path
 
+from django.contrib import messages
+from django.contrib.auth import get_user_model
 from django.contrib.auth.decorators import login_required
+from django.core.exceptions import PermissionDenied
 from django.core.files.storage import default_storage
-from django.db import connection
+from django.db import connection, transaction
 from django.db.models import Q
 from django.http import FileResponse, Http404, HttpResponse, JsonResponse
 from django.shortcuts import get_object_or_404, redirect, render
 from django.urls import reverse
 from django.views.decorators.http import require_POST
 
-from .models import Comparison, Job, Patient, Reconstruction, Rig, Visit, clinics_of
+from . import api
+from .models import Comparison, Job, Member, Patient, Reconstruction, Rig, Visit, clinics_of
+
+# Who may do what. Actions the API has (re-running a job, issuing and revoking a rig's keys) are run through
+# the API's own operations, so the pages get its scoping, its role check (`_member_clinic`, administrators and
+# technicians) and its logic. Actions only the pages have ask the same helper with these roles:
+CORRECT_LANDMARKS = (Member.CLINICIAN, Member.ADMINISTRATOR)  # a clinical judgement: not technicians
+MANAGE_MEMBERS = (Member.ADMINISTRATOR,)
+
+
+def _require_role(request, clinic_id, roles=None):
+    """The clinic, if the user's role in it allows the action: 404 for a non-member, 403 for another role."""
+    try:
+        if roles is None:  # the API's default: what its staff endpoints allow
+            return api._member_clinic(request, clinic_id)
+        return api._member_clinic(request, clinic_id, roles=roles)
+    except api.ApiError as exc:
+        raise (Http404 if exc.status == 404 else PermissionDenied)(exc.detail) from None
+
+
+def _may(request, clinic_id, roles=None) -> bool:
+    """Whether to offer the action on a page (the action itself checks again)."""
+    try:
+        _require_role(request, clinic_id, roles)
+    except (Http404, PermissionDenied):
+        return False
+    return True
+
+
+def _run_api(operation, request, *args):
+    """One of the API's staff operations for a page: its 404 and 403 become the page's; other refusals stay ApiError."""
+    try:
+        out = operation(request, *args)
+    except api.ApiError as exc:
+        if exc.status in (403, 404):
+            raise (Http404 if exc.status == 404 else PermissionDenied)(exc.detail) from None
+        raise
+    return json.loads(out.content) if isinstance(out, HttpResponse) else out
+
+
+def _refused(request, message, status, back=None):
+    return render(request, "clinic/error.html", {"message": message, "back": back}, status=status)
 
 
 def healthz(request):
@@ -91,7 +138,9 @@ def patients(request):
     if q:
         rows = rows.filter(Q(name__icontains=q) | Q(identifier__icontains=q))
     rigs = Rig.objects.filter(clinic__in=clinics_of(request.user))
-    return render(request, "clinic/patients.html", {"patients": rows, "q": q, "rigs": rigs})
+    administered = [c for c in clinics_of(request.user) if _may(request, c.pk, MANAGE_MEMBERS)]
+    return render(request, "clinic/patients.html", {"patients": rows, "q": q, "rigs": rigs,
+                                                    "administered": administered})
 
 
 @login_required
@@ -150,7 +199,9 @@ def visit(request, visit_id):
     return render(request, "clinic/visit.html", {
         "visit": v, "rec": rec, "jobs": jobs, "running": running, "pairs": pairs, "arms": arms,
         "flat": _flat(rec.indices if rec else None), "index_rows": INDEX_ROWS,
-        "landmarks": (rec.indices or {}).get("landmarks", {}) if rec else {}})
+        "landmarks": (rec.indices or {}).get("landmarks", {}) if rec else {},
+        "may_rerun": _may(request, v.patient.clinic_id),
+        "may_correct": _may(request, v.patient.clinic_id, CORRECT_LANDMARKS)})
 
 
 @login_required
@@ -160,6 +211,7 @@ def correct_landmarks(request, visit_id):
     from .analysis_step import analyse_reconstruction
 
     v = get_object_or_404(Visit.objects.filter(patient__clinic__in=clinics_of(request.user)), pk=visit_id)
+    _require_role(request, v.patient.clinic_id, CORRECT_LANDMARKS)
     rec = _best(v)
     if rec is None:
         raise Http404("this visit has no torso yet")
@@ -221,8 +273,12 @@ def comparison(request, patient_id):
 
 @login_required
 def rig(request, serial):
-    """A rig: its calibrations and every camera's stability history."""
-    r = get_object_or_404(Rig.objects.filter(clinic__in=clinics_of(request.user)), serial=serial)
+    """A rig: its calibrations, every camera's stability history and, for who may manage them, its API keys."""
+    return _rig_page(request, get_object_or_404(Rig.objects.filter(clinic__in=clinics_of(request.user)),
+                                                serial=serial))
+
+
+def _rig_page(request, r, new_key=None):
     calibrations = list(r.calibrations.all().order_by("calibrated_at"))
     cams = []
     for cam in r.cameras.all():
@@ -235,8 +291,28 @@ def rig(request, serial):
                          "rms_max": max(rms) if rms else None,
                          "dropped": sum((c.figures.get("dropped") or {}).values()),
                          "warnings": len(c.figures.get("warnings") or [])})
-    return render(request, "clinic/rig.html", {"rig": r, "calibrations": cal_rows, "cameras": cams,
-                                               "has_checks": any(c["checks"] for c in cams)})
+    may_manage_keys = _may(request, r.clinic_id)
+    return render(request, "clinic/rig.html", {
+        "rig": r, "calibrations": cal_rows, "cameras": cams, "has_checks": any(c["checks"] for c in cams),
+        "may_manage_keys": may_manage_keys, "keys": r.keys.order_by("-created") if may_manage_keys else [],
+        "new_key": new_key})
+
+
+@login_required
+@require_POST
+def issue_rig_key(request, serial):
+    """A new API key for the rig, shown on this one answer only (only its hash is kept)."""
+    issued = _run_api(api.new_rig_key, request, serial)
+    r = get_object_or_404(Rig.objects.filter(clinic__in=clinics_of(request.user)), serial=serial)
+    return _rig_page(request, r, new_key=issued["key"])
+
+
+@login_required
+@require_POST
+def revoke_rig_key(request, serial, prefix):
+    _run_api(api.revoke_rig_key, request, serial, prefix)
+    messages.success(request, f"Key {prefix}… revoked: the rig can no longer upload with it.")
+    return redirect("rig", serial=serial)
 
 
 @login_required
@@ -292,12 +368,87 @@ def picture(request, kind, pk, name):
 @login_required
 @require_POST
 def rerun(request, job_id):
-    from . import pipeline
-
     job = get_object_or_404(Job.objects.filter(rig__clinic__in=clinics_of(request.user)), uid=job_id)
-    try:
-        pipeline.rerun(job)
-    except pipeline.JobError as exc:
-        return render(request, "clinic/error.html", {"message": str(exc)}, status=409)
     target = reverse("visit", args=[job.session.visit_id]) if job.session and job.session.visit_id else "/"
+    try:
+        _run_api(api.rerun_job, request, str(job.uid))
+    except api.ApiError as exc:  # 409: a worker still holds it
+        return _refused(request, exc.detail, exc.status, back=target)
     return redirect(target)
+
+
+# --- a clinic's members, for its administrators ---------------------------------------------
+
+@login_required
+def members(request, clinic_id):
+    clinic = _require_role(request, clinic_id, MANAGE_MEMBERS)
+    return render(request, "clinic/members.html", {
+        "clinic": clinic, "members": clinic.members.select_related("user").order_by("user__username"),
+        "roles": Member.ROLES})
+
+
+def _role(request):
+    role = request.POST.get("role", "")
+    return role if role in dict(Member.ROLES) else None
+
+
+def _keeps_an_administrator(clinic, member, role=None) -> bool:
+    """Whether the clinic still has an administrator once ``member`` is removed (or given ``role``)."""
+    if member.role != Member.ADMINISTRATOR or role == Member.ADMINISTRATOR:
+        return True
+    # locked, so two administrators cannot demote each other at once and leave none
+    admins = list(clinic.members.select_for_update().filter(role=Member.ADMINISTRATOR).values_list("pk", flat=True))
+    return any(pk != member.pk for pk in admins)
+
+
+@login_required
+@require_POST
+def add_member(request, clinic_id):
+    """An existing user joins the clinic with a role (accounts themselves are made by a superuser)."""
+    clinic = _require_role(request, clinic_id, MANAGE_MEMBERS)
+    back = reverse("members", args=[clinic.pk])
+    username, role = request.POST.get("username", "").strip(), _role(request)
+    if role is None:
+        return _refused(request, "choose a role", 400, back)
+    user = get_user_model().objects.filter(username=username, is_active=True).first()
+    if user is None:
+        return _refused(request, f"there is no active user {username!r}; ask your superuser to create the account",
+                        400, back)
+    _, created = Member.objects.get_or_create(clinic=clinic, user=user, defaults={"role": role})
+    if not created:
+        return _refused(request, f"{username} is already a member of {clinic.name}; change their role instead",
+                        409, back)
+    messages.success(request, f"{username} added as {role}.")
+    return redirect(back)
+
+
+@login_required
+@require_POST
+def change_member_role(request, clinic_id, member_id):
+    clinic = _require_role(request, clinic_id, MANAGE_MEMBERS)
+    back = reverse("members", args=[clinic.pk])
+    role = _role(request)
+    if role is None:
+        return _refused(request, "choose a role", 400, back)
+    with transaction.atomic():
+        member = get_object_or_404(clinic.members.select_related("user"), pk=member_id)
+        if not _keeps_an_administrator(clinic, member, role):
+            return _refused(request, "the clinic must keep at least one administrator", 409, back)
+        member.role = role
+        member.save(update_fields=["role"])
+    messages.success(request, f"{member.user.username} is now {role}.")
+    return redirect(back)
+
+
+@login_required
+@require_POST
+def remove_member(request, clinic_id, member_id):
+    clinic = _require_role(request, clinic_id, MANAGE_MEMBERS)
+    back = reverse("members", args=[clinic.pk])
+    with transaction.atomic():
+        member = get_object_or_404(clinic.members.select_related("user"), pk=member_id)
+        if not _keeps_an_administrator(clinic, member):
+            return _refused(request, "the clinic must keep at least one administrator", 409, back)
+        member.delete()
+    messages.success(request, f"{member.user.username} removed from {clinic.name}.")
+    return redirect(back if member.user != request.user else "patients")

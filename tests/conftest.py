@@ -124,6 +124,17 @@ def charlie(clinic):
 
 
 @pytest.fixture
+def ada(clinic):
+    """An administrator of the clinic: its members and rig keys (staff, not a superuser)."""
+    from clinic.models import Member
+
+    user = _user("ada", clinic, Member.ADMINISTRATOR)
+    user.is_staff = True
+    user.save(update_fields=["is_staff"])
+    return user
+
+
+@pytest.fixture
 def olga(other_clinic):
     """An administrator of another clinic."""
     from clinic.models import Member
