@@ -13,7 +13,7 @@ SYSDEPS := libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 chromium
 DEMO := demo-out
 # What a clinic does, on the embedded default (SQLite under var/, jobs in-process):
 # a reduced rig calibrated, a patient with a baseline, a re-scan and a follow-up,
-# all through the API; then `.venv/bin/python manage.py runserver` shows the pages.
+# all through the API; then `DEBUG=true .venv/bin/python manage.py runserver` shows the pages.
 demo: export DEBUG = true
 demo: $(STAMP)
 	$(PY) manage.py migrate --noinput
