@@ -95,3 +95,13 @@ def test_it_hands_a_lapsed_arm_to_its_redelivery_and_refuses_a_live_one(client, 
     assert (job.state, job.stage, job.attempt) == (Job.SUCCEEDED, "done", 1), job.error
     assert set(job.arms.values_list("state", flat=True)) == {Job.SUCCEEDED}
     assert Reconstruction.objects.get(job=job).status in ("ok", "partial")
+
+    # a registration whose worker died half-way (its torso already stored): once its lease lapses, the sweeper
+    # has it done again, and the half-made result is replaced
+    half_made = Reconstruction.objects.get(job=job).pk
+    Job.objects.filter(pk=job.pk).update(state=Job.RUNNING, stage="indices and pictures", finished=None,
+                                         claimed=_ago(60), lease_until=_ago(1), dispatched=_ago(60))
+    assert pipeline.redispatch_stalled(older_than=0) == [("clinic.tasks.register", job.pk)]
+    job.refresh_from_db()
+    assert (job.state, job.stage) == (Job.SUCCEEDED, "done"), job.error
+    assert Reconstruction.objects.get(job=job).pk != half_made
