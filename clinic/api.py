@@ -357,7 +357,7 @@ def _store(name: str, fileobj) -> str:
         return default_storage.save(name, File(fileobj))
     except Exception as exc:
         log.exception("storage failed saving %s", name)
-        raise Unavailable(f"the file store failed ({type(exc).__name__}: {exc})") from None
+        raise Unavailable(f"the file store failed ({type(exc).__name__})") from None
 
 
 def _stored(name: str) -> bool:
@@ -365,7 +365,7 @@ def _stored(name: str) -> bool:
         return bool(name) and default_storage.exists(name)
     except Exception as exc:
         log.exception("storage failed checking %s", name)
-        raise Unavailable(f"the file store failed ({type(exc).__name__}: {exc})") from None
+        raise Unavailable(f"the file store failed ({type(exc).__name__})") from None
 
 
 def _discard_unreferenced(names):

@@ -48,7 +48,7 @@ def test_it_completes_a_torso_whose_worker_was_killed_during_an_arm(tmp_path, ri
         # the killed arm was taken over after its lease lapsed (not before), within a sweep of it
         (_, _, retaken), = clinic.sql(lease, job_id, killed_arm)
         assert lapses <= float(retaken) <= float(lapses) + SWEEP + 3
-        assert f"re-dispatching clinic.tasks.reconstruct_arm(" in clinic.worker_log()
+        assert "re-dispatching clinic.tasks.reconstruct_arm(" in clinic.worker_log()
         print(f"worker killed during arm {killed_arm}; its lease lapsed {float(lapses) - killed:.1f} s later, "
               f"the arm was taken over {float(retaken) - killed:.1f} s and the job done {took:.1f} s after "
               f"the kill (lease {LEASE} s, sweep every {SWEEP} s)")
