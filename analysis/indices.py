@@ -32,6 +32,7 @@ from .torso import PlaneIndex, Torso
 
 FORMAT = "torso-indices/1"
 LANDMARKS = ("vertebra_prominens", "sacral_point")
+_AUTO = {"vertebra_prominens": "vp", "sacral_point": "sp"}
 
 
 @dataclass
@@ -60,8 +61,22 @@ def rms(v) -> float:
 
 
 def _summary(sections, key):
-    vals = [s[key] for s in sections]
-    return {"rms": rms(vals), "max": signed_max(vals)}
+    """RMS and signed maximum over the sections (the spec's), and each side's largest value with its level.
+
+    ``right`` / ``left``: the largest value towards the patient's right (positive) and left (negative), as a
+    size (>= 0) with its level (fraction SP -> VP) and height above SP (mm); None where no section leans
+    that way. An S-curve has one of each; a signed maximum alone jumps sides when the two are close.
+    """
+    vals = np.array([s[key] for s in sections], float)
+    out = {"rms": rms(vals), "max": signed_max(vals)}
+    z_sp = sections[0]["z_mm"] - sections[0]["level"] * (sections[1]["z_mm"] - sections[0]["z_mm"]) / \
+        max(sections[1]["level"] - sections[0]["level"], 1e-9) if len(sections) > 1 else sections[0]["z_mm"]
+    for side, sign in (("right", 1.0), ("left", -1.0)):
+        v = np.where(np.isfinite(vals), sign * vals, -np.inf)
+        k = int(np.argmax(v)) if len(v) else 0
+        out[side] = ({"size": float(v[k]), "level": sections[k]["level"], "height_mm": sections[k]["z_mm"] - z_sp}
+                     if len(v) and v[k] > 0 else None)
+    return out
 
 
 def trunk_mask(P: np.ndarray, z_lo: float, z_hi: float, cfg: IndicesConfig, step_mm: float | None = None) -> np.ndarray:
@@ -317,8 +332,9 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
                  "midline_rotation": {"level": mid_apex["level"], "z_mm": mid_apex["z_mm"],
                                       "value_deg": mid_apex["midline_rotation_deg"]}},
         "landmarks": {k: {"position_mm": lm_rig[k].tolist(), "source": source[k],
-                          "method": auto["vp_method" if k == "vertebra_prominens" else "sp_method"]
-                          if source[k] == "auto" else "clinician"} for k in LANDMARKS},
+                          "method": auto[_AUTO[k] + "_method"] if source[k] == "auto" else "clinician",
+                          "confidence": auto[_AUTO[k] + "_confidence"] if source[k] == "auto" else "clinician",
+                          "evidence_mm": auto[_AUTO[k] + "_evidence_mm"]} for k in LANDMARKS},
         "frame": {**frame.to_dict(), "facing": facing,
                   "convention": "x left, y posterior, z up; reported lateral values positive towards the "
                                 "patient's right, rotation positive when the right back comes backwards"},
@@ -329,6 +345,13 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
     if facing.get("status") == "uncertain":
         withhold(report, f"not measurable on this scan: the patient's facing is uncertain ({facing.get('reason')}); "
                          "mark the vertebra prominens on the back to settle it")
+    else:
+        unsure = [k for k in LANDMARKS if source[k] == "auto" and auto[_AUTO[k] + "_confidence"] != "high"]
+        if unsure:
+            names = " and ".join(k.replace("_", " ") for k in unsure)
+            withhold(report, f"not measurable on this scan: the {names} could not be found with confidence "
+                             f"({', '.join(auto[_AUTO[k] + '_method'] for k in unsure)}); mark the landmark",
+                     LANDMARKED, landmarks=unsure)
     return TorsoAnalysis(report, frame, dmap, lm_rig, asym, sections)
 
 
@@ -338,14 +361,20 @@ SIDED = ("lateral_deviation_mm", "surface_rotation_deg", "spine_lateral_deviatio
          "hump_mm", "hump_angle_deg", "trunk_imbalance_mm", "trunk_inclination_mm", "regions", "apex")
 
 
-def withhold(report: dict, reason: str) -> dict:
-    """Replace the facing-dependent figures of an indices report by None, in place, and say why."""
-    for key in SIDED:
+# figures that rest on VP and SP (the sections between them, the line joining them, the length): a landmark
+# placed by a fallback makes them not measurable; the whole-torso asymmetry does not rest on them
+LANDMARKED = SIDED + ("trunk_length_mm",)
+
+
+def withhold(report: dict, reason: str, keys=SIDED, landmarks=()) -> dict:
+    """Replace the figures ``keys`` of an indices report by None, in place, and say why (and which landmarks
+    a clinician should mark)."""
+    for key in keys:
         if key not in report:
             continue
         v = report[key]
         report[key] = {k: None for k in v} if isinstance(v, dict) and key not in ("regions", "apex") else None
-    report["not_measurable"] = {"indices": list(SIDED), "reason": reason}
+    report["not_measurable"] = {"indices": list(keys), "reason": reason, "mark": list(landmarks)}
     return report
 
 

@@ -6,13 +6,14 @@ Both are found in the patient frame (x left, y posterior, z up) from the shape:
   the trunk narrows from the shoulders into the neck: the lowest height above
   the widest level where the trunk's width falls below ``neck_width_ratio`` of
   the shoulders'; then, when the back's midline is seen above it, refined to
-  where the midline turns fastest from the thoracic kyphosis into the
-  cervical lordosis (its steepest forward slope, within 40 mm below and 60 mm
-  above); when the surface stops below the neck, the top of the back.
+  the neck's flank: where the midline, between the thoracic kyphosis's crest
+  and the neck's hollow, crosses half their depth difference
+  (:func:`find_vp_crossing`); when the surface stops below the neck, the top
+  of the back (low confidence).
 - SP, the sacral point (top of the gluteal cleft, S1–S2), is the most
   posterior point of the back's line of symmetry below the lumbar lordosis:
-  the midline profile's deepest point in the lower 60 % of the back, then its
-  most posterior point below that.
+  the midline profile's deepest point in the lower 60 % of the back, then the
+  middle of the crest below it (low confidence when no crest is seen).
 
 Formetric finds the lumbar dimples (the posterior superior iliac spines) as
 the two concavities either side of SP; on a smooth skin they may not exist,
@@ -120,30 +121,48 @@ def find_vp_height(P: np.ndarray, back_mask: np.ndarray, cfg: IndicesConfig) -> 
     return z_top, "top of the back"
 
 
-def find_vp_inflection(zs: np.ndarray, depth: np.ndarray, z_neck: float, below_mm: float = 40.0,
-                       above_mm: float = 60.0) -> float | None:
-    """VP refined on the midline profile: where the back turns fastest from the thoracic kyphosis into the
-    cervical lordosis (steepest forward slope of the midline), near the neck level ``z_neck``.
+def find_vp_crossing(zs: np.ndarray, depth: np.ndarray, z_neck: float) -> tuple[float, float] | None:
+    """VP on the midline profile: where the back, coming down from the neck's hollow, has climbed half way to
+    the thoracic kyphosis's crest. Returns ``(height mm, drop mm)`` or None.
 
-    None when the profile does not reach far enough above the neck (the surface ends at VP).
+    The crest is the most posterior midline point within 200 mm below (and 20 mm above) the neck level
+    ``z_neck``; the hollow the most anterior one within 220 mm above the crest. The half-depth level is
+    crossed where the profile is steep, so its height is fixed to a few mm by the whole flank; the steepest
+    point alone (the flank is nearly straight over 60-80 mm) moved by up to 18 mm between same-day re-scans.
+    ``drop`` (crest minus hollow) is the evidence: a few mm of it is no neck at all.
     """
     d = _smooth(depth, 2)
     ok = np.isfinite(d)
-    if not ok.any() or zs[ok].max() < z_neck + 20.0:
+    if ok.sum() < 10:
         return None
     z, d = zs[ok], d[ok]
-    slope = np.gradient(d, z)
-    win = (z >= z_neck - below_mm) & (z <= z_neck + above_mm)
-    if win.sum() < 5:
+    crest_win = (z >= z_neck - 200.0) & (z <= z_neck + 20.0)
+    if crest_win.sum() < 5:
         return None
-    k = np.nonzero(win)[0][int(np.argmin(slope[win]))]
-    if k in (np.nonzero(win)[0][0], np.nonzero(win)[0][-1]):
-        return None  # no turn inside the window
-    return float(z[k])
+    k_c = np.nonzero(crest_win)[0][int(np.argmax(d[crest_win]))]
+    hollow_win = (z > z[k_c]) & (z <= z[k_c] + 220.0)
+    if hollow_win.sum() < 5:
+        return None
+    k_h = np.nonzero(hollow_win)[0][int(np.argmin(d[hollow_win]))]
+    drop = float(d[k_c] - d[k_h])
+    if drop <= 0:
+        return None
+    level = d[k_c] - 0.5 * drop
+    flank = np.arange(k_c, k_h + 1)
+    below = flank[d[flank] < level]
+    k = int(below[0])
+    f = (d[k - 1] - level) / max(d[k - 1] - d[k], 1e-9)
+    return float(z[k - 1] + f * (z[k] - z[k - 1])), drop
 
 
-def find_sp_height(zs: np.ndarray, depth: np.ndarray, z_vp: float) -> tuple[float, str]:
-    """Height of SP from the midline depth profile: most posterior point below the lordosis."""
+def find_sp_height(zs: np.ndarray, depth: np.ndarray, z_vp: float) -> tuple[float, str, float]:
+    """Height of SP from the midline depth profile: the sacral prominence below the lumbar lordosis.
+
+    Returns ``(height mm, method, rise mm)``: the prominence is the crest of the midline below the
+    lordosis's deepest point (lower 60 % of the back); its height is the middle of the crest's top 2 mm (a
+    flat crest's highest sample wanders with noise); ``rise`` is how far the crest stands behind the
+    lordosis (0 when no prominence is seen: the bottom of the back).
+    """
     d = _smooth(depth)
     ok = np.isfinite(d) & (zs < z_vp)
     if ok.sum() < 5:
@@ -152,26 +171,52 @@ def find_sp_height(zs: np.ndarray, depth: np.ndarray, z_vp: float) -> tuple[floa
     lower = z <= z[0] + 0.6 * (z_vp - z[0])
     k_l = int(np.argmin(np.where(lower, d, np.inf)))
     if k_l == 0:
-        return float(z[0]), "bottom of the back"
+        return float(z[0]), "bottom of the back", 0.0
     k_sp = int(np.argmax(d[:k_l + 1]))
-    return float(z[k_sp]), "sacral prominence" if k_sp > 0 else "bottom of the back"
+    if k_sp == 0:
+        return float(z[0]), "bottom of the back", 0.0
+    # the contiguous run of the crest's top (within 2 mm of its highest sample) around that sample
+    near = d[:k_l + 1] >= d[k_sp] - 2.0
+    lo, hi = k_sp, k_sp
+    while lo > 0 and near[lo - 1]:
+        lo -= 1
+    while hi < k_l and near[hi + 1]:
+        hi += 1
+    return float(0.5 * (z[lo] + z[hi])), "sacral prominence", float(d[k_sp] - d[k_l])
+
+
+# the evidence a landmark needs to be trusted without a clinician: the neck's hollow this far in front of the
+# kyphosis's crest, the sacral prominence this far behind the lordosis (mm)
+VP_MIN_DROP_MM = 10.0
+SP_MIN_RISE_MM = 3.0
 
 
 def detect_landmarks(P: np.ndarray, back_mask: np.ndarray, dmap: DepthMap, cfg: IndicesConfig) -> dict:
-    """VP and SP (patient frame, mm) on the back's symmetry line, with how each was found."""
+    """VP and SP (patient frame, mm) on the back's symmetry line, with how each was found and its confidence.
+
+    ``vp_confidence`` / ``sp_confidence``: "high" when the shape shows the landmark (the neck's hollow, the
+    sacral prominence) clearly, "low" when it was placed by a fallback (the top or the bottom of the seen
+    back): the indices that rest on a low-confidence landmark are not measurable until a clinician marks it.
+    """
     z_vp, how_vp = find_vp_height(P, back_mask, cfg)
     zs, xs, ds = midline_profile(dmap, cfg)
+    vp_conf, vp_evidence = "low", 0.0
     if how_vp == "neck":
-        z_inf = find_vp_inflection(zs, ds, z_vp)
-        if z_inf is not None:
-            z_vp, how_vp = z_inf, "neck inflection"
+        found = find_vp_crossing(zs, ds, z_vp)
+        if found is not None:
+            z_c, vp_evidence = found
+            if vp_evidence >= VP_MIN_DROP_MM:
+                z_vp, how_vp, vp_conf = z_c, "neck flank", "high"
     seen = zs[np.isfinite(ds)]
     if len(seen) and z_vp > seen.max():
         # the back's midline is not seen up to the neck (a sparse surface): VP at the highest midline point seen
-        z_vp, how_vp = float(seen.max()), "top of the seen midline"
-    z_sp, how_sp = find_sp_height(zs, ds, z_vp)
+        z_vp, how_vp, vp_conf = float(seen.max()), "top of the seen midline", "low"
+    z_sp, how_sp, sp_evidence = find_sp_height(zs, ds, z_vp)
+    sp_conf = "high" if sp_evidence >= SP_MIN_RISE_MM else "low"
     return {"vertebra_prominens": point_on_midline(dmap, z_vp, xs, zs, cfg, below=True), "vp_method": how_vp,
+            "vp_confidence": vp_conf, "vp_evidence_mm": vp_evidence,
             "sacral_point": point_on_midline(dmap, z_sp, xs, zs, cfg), "sp_method": how_sp,
+            "sp_confidence": sp_conf, "sp_evidence_mm": sp_evidence,
             "midline": (zs, xs, ds)}
 
 

@@ -61,9 +61,9 @@ def test_an_uncertain_facing_withholds_every_sided_index(body):
 
 
 def test_same_day_rescans_keep_the_patients_sides(body):
-    # the re-scan is cut differently (the neck and head in view) and sampled anew: the sides must not swap
+    # the re-scan is cut differently (the neck and chin in view) and sampled anew: the sides must not swap
     a, truth = _scan(body, 15.0, "torso", seed=1, rotation_deg=8.0)
-    b, _ = _scan(body, 15.0, "waist-to-head", seed=2, rotation_deg=8.0)
+    b, _ = _scan(body, 15.0, "hips-to-chin", seed=2, rotation_deg=8.0)
     ra, rb = analyse_torso(a).report, analyse_torso(b).report
     for rep in (ra, rb):
         assert rep["frame"]["facing"]["status"] == "certain"

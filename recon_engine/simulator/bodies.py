@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import functools
 import gzip
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +39,7 @@ class Body:
     spine: np.ndarray  # (K, 3) spine line from sacrum to C7, increasing Z
     z_sacrum: float
     z_c7: float
+    shoulders: np.ndarray | None = None  # (2, 3) the left and right shoulder joints (MakeHuman only)
 
 
 def mesh_path() -> Path:
@@ -123,7 +124,8 @@ def load_makehuman(stature_mm: float = 1550.0, subdivisions: int = 2, path: str 
         arm |= _segment_distance(centroids, e, h) < radius
         arm |= np.abs(centroids[:, 0]) > abs(s[0]) + 0.1 * scale
     torso = (centroids[:, 2] > z_sac - 30.0) & (centroids[:, 2] < z_c7) & ~arm
-    return Body("makehuman", vertices, triangles, torso, spine, float(z_sac), float(z_c7))
+    shoulders = np.vstack([world(joint(f"{side}-shoulder")) for side in ("l", "r")])
+    return Body("makehuman", vertices, triangles, torso, spine, float(z_sac), float(z_c7), shoulders)
 
 
 def make_parametric(stature_mm: float = 1550.0, n_around: int = 360, n_up: int = 260) -> Body:
@@ -179,11 +181,71 @@ def make_parametric(stature_mm: float = 1550.0, n_around: int = 360, n_up: int =
 
 
 def load_body(cfg: SubjectConfig) -> Body:
+    """The subject at rest: the chosen torso at ``cfg.stature_mm``, shaped by the build (:func:`shape_body`)."""
     if cfg.torso == "makehuman":
-        return load_makehuman(cfg.stature_mm)
-    if cfg.torso == "parametric":
-        return make_parametric(cfg.stature_mm)
-    raise ValueError(f"unknown torso {cfg.torso!r}: choose 'makehuman' or 'parametric'")
+        body = load_makehuman(cfg.stature_mm)
+    elif cfg.torso == "parametric":
+        body = make_parametric(cfg.stature_mm)
+    else:
+        raise ValueError(f"unknown torso {cfg.torso!r}: choose 'makehuman' or 'parametric'")
+    return shape_body(body, cfg)
+
+
+def shape_body(body: Body, cfg: SubjectConfig) -> Body:
+    """The body in another build: widths and depths about the spine line, belly, breasts, hips, arms, hair.
+
+    Every change keeps the spine line (x = 0 and its depth) where it is, so
+    the truth (spine, landmarks behind C7 and the sacrum) follows the skin.
+    Lengths in mm, world frame (the subject faces -Y, left +X).
+    """
+    defaults = (1.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0)
+    build = (cfg.build_width, cfg.build_depth, cfg.belly_mm, cfg.breasts_mm, cfg.hips, cfg.arm_abduction_deg,
+             cfg.neck_hair_mm)
+    if build == defaults:
+        return body
+    V = body.vertices.copy()
+    z = V[:, 2]
+    L = body.z_c7 - body.z_sacrum
+    s = (z - body.z_sacrum) / L  # spine level: sacrum 0, C7 1
+    sy = np.interp(z, body.spine[:, 2], body.spine[:, 1])
+    if body.shoulders is not None and cfg.arm_abduction_deg:
+        V = _turn_arms(V, body, cfg.arm_abduction_deg)
+    front = np.clip(-(V[:, 1] - sy) / 60.0, 0.0, 1.0)  # 0 on the back, 1 on the front
+    # the build: widths about the mid-sagittal plane, depths about the spine line
+    hips = 1.0 + (cfg.hips - 1.0) * _bump(s, -0.5, -0.05, 0.35)
+    V[:, 0] *= cfg.build_width * hips
+    V[:, 1] = sy + (V[:, 1] - sy) * cfg.build_depth
+    across = V[:, 0] / (120.0 * cfg.build_width)
+    if cfg.belly_mm:
+        V[:, 1] -= cfg.belly_mm * _bump(s, -0.1, 0.28, 0.62) * np.exp(-0.5 * across ** 2) * front
+    if cfg.breasts_mm:
+        for side in (-1.0, 1.0):
+            d2 = ((V[:, 0] - side * 75.0 * cfg.build_width) / 45.0) ** 2 + ((s - 0.74) / 0.07) ** 2
+            V[:, 1] -= cfg.breasts_mm * np.exp(-0.5 * d2) * front
+    if cfg.neck_hair_mm:
+        # a mass of hair lies on the back of the neck and ends at C7: it hides the skin over the vertebra
+        # prominens, as long hair does when not tied up
+        back = np.clip((V[:, 1] - sy) / 30.0, 0.0, 1.0) * np.exp(-0.5 * (V[:, 0] / 45.0) ** 2)
+        V[:, 1] += cfg.neck_hair_mm * back * np.clip((z - body.z_c7 + 10.0) / 30.0, 0.0, 1.0)
+    return replace(body, vertices=V)
+
+
+def _turn_arms(V: np.ndarray, body: Body, abduction_deg: float) -> np.ndarray:
+    """The arms turned about their shoulders in the coronal plane (+: raised), blended over the armpit."""
+    out = V.copy()
+    for k, side in enumerate((1.0, -1.0)):
+        sh = body.shoulders[k]
+        lateral = side * (V[:, 0] - sh[0])  # beyond the shoulder joint, outwards
+        w = np.clip(lateral / 60.0, 0.0, 1.0) * (V[:, 2] > sh[2] - 700.0) * (V[:, 2] < sh[2] + 80.0)
+        w *= side * V[:, 0] > 60.0  # never the trunk's middle
+        a = np.radians(-side * abduction_deg) * w
+        rel = V[:, [0, 2]] - sh[[0, 2]]
+        c, sn = np.cos(a), np.sin(a)
+        out[:, 0] = sh[0] + c * rel[:, 0] + sn * rel[:, 1]
+        out[:, 2] = sh[2] - sn * rel[:, 0] + c * rel[:, 1]
+        V = np.where(w[:, None] > 0, out, V)
+        out = V.copy()
+    return V
 
 
 # --- the curve ----------------------------------------------------------------

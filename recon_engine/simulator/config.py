@@ -66,7 +66,15 @@ class RigConfig:
 @dataclass(frozen=True)
 class SubjectConfig:
     torso: str = "makehuman"  # or "parametric"
-    stature_mm: float = 1550.0  # an adolescent
+    stature_mm: float = 1550.0  # an adolescent (the family spans 1300-1800)
+    # the body's build, applied to the rest body about its spine line (so the spine and the truth stay put):
+    build_width: float = 1.0  # across (x) scale: 0.9 slim .. 1.2 heavy
+    build_depth: float = 1.0  # front-back (y) scale: 0.85 slim .. 1.4 heavy
+    belly_mm: float = 0.0  # forward bulge of the abdomen at the navel (a heavy body: 20-40)
+    breasts_mm: float = 0.0  # forward bulge of each breast (an adolescent girl: 15-35)
+    hips: float = 1.0  # across scale at the pelvis, blending to 1 at the waist (a girl: 1.05-1.12)
+    arm_abduction_deg: float = 0.0  # arms turned about the shoulders: + raised away from the trunk, - hanging closer
+    neck_hair_mm: float = 0.0  # hair over the back of the neck down to C7 (bulk, mm; 0: none)
     curve: str = "S"  # "C" (one thoracolumbar curve) or "S" (right thoracic, left lumbar)
     thoracic_apex: float = 0.62  # apex level as a fraction sacrum (0) -> C7 (1): about T8
     lumbar_apex: float = 0.22  # about L2
