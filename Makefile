@@ -6,7 +6,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-SYSDEPS := libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 chromium
+SYSDEPS := libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 chromium nginx-light
 
 .PHONY: demo test venv sysdeps bench clean
 
@@ -24,7 +24,8 @@ test: $(STAMP)
 
 venv: $(STAMP)
 
-# System libraries that open3d (libusb) and headless pyvista (EGL) load; Chromium for the browser test.
+# System libraries that open3d (libusb) and headless pyvista (EGL) load; Chromium for the browser test;
+# nginx for the slow-client test (the compose file's front door).
 sysdeps:
 	@missing=""; for p in $(SYSDEPS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	if [ -z "$$missing" ]; then exit 0; fi; \
