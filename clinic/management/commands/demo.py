@@ -164,5 +164,5 @@ class Command(BaseCommand):
         n = Reconstruction.objects.filter(session__visit__patient_id=patient["id"]).count()
         self.say(f"\n{n} torsos reconstructed in {time.perf_counter() - t0:.0f} s in all.")
         self.say("Open the clinicians' pages:\n"
-                 "  .venv/bin/python manage.py runserver\n"
+                 "  DEBUG=true .venv/bin/python manage.py runserver\n"
                  f"  http://127.0.0.1:8000/  user {DEMO_USER!r}, password {DEMO_PASSWORD!r}")
