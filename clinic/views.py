@@ -12,6 +12,7 @@ import json
 import tempfile
 from pathlib import Path
 
+from django import forms
 from django.contrib import messages
 from django.contrib.auth import get_user_model
 from django.contrib.auth.decorators import login_required
@@ -19,12 +20,13 @@ from django.core.exceptions import PermissionDenied
 from django.core.files.storage import default_storage
 from django.db import connection, transaction
 from django.db.models import Q
+from django.core.files.base import ContentFile
 from django.http import FileResponse, Http404, HttpResponse, JsonResponse
 from django.shortcuts import get_object_or_404, redirect, render
 from django.urls import reverse
 from django.views.decorators.http import require_POST
 
-from . import api
+from . import api, labels
 from .models import Comparison, Job, Member, Patient, Reconstruction, Rig, Visit, clinics_of
 
 # Who may do what. Actions the API has (re-running a job, issuing and revoking a rig's keys) are run through
@@ -32,6 +34,7 @@ from .models import Comparison, Job, Member, Patient, Reconstruction, Rig, Visit
 # technicians) and its logic. Actions only the pages have ask the same helper with these roles:
 CORRECT_LANDMARKS = (Member.CLINICIAN, Member.ADMINISTRATOR)  # a clinical judgement: not technicians
 MANAGE_MEMBERS = (Member.ADMINISTRATOR,)
+EDIT_PATIENTS = (Member.CLINICIAN, Member.TECHNICIAN, Member.ADMINISTRATOR)  # as the API's create_patient
 
 
 def _require_role(request, clinic_id, roles=None):
@@ -80,21 +83,6 @@ def healthz(request):
                         status=200 if database else 503)
 
 
-# the indices shown in tables and trends: (key in the flattened torso-indices/1, label, unit)
-INDEX_ROWS = [
-    ("lateral_deviation_mm.max", "Lateral deviation of the symmetry line, max", "mm"),
-    ("lateral_deviation_mm.rms", "Lateral deviation of the symmetry line, RMS", "mm"),
-    ("surface_rotation_deg.max", "Surface rotation, max", "°"),
-    ("surface_rotation_deg.rms", "Surface rotation, RMS", "°"),
-    ("spine_lateral_deviation_mm.max", "Spine midline deviation (model), max", "mm"),
-    ("midline_rotation_deg.max", "Rotation of the skin at the symmetry line, max", "°"),
-    ("hump_mm", "Rib / lumbar hump", "mm"),
-    ("trunk_imbalance_mm", "Trunk imbalance", "mm"),
-    ("asymmetry_mm", "Asymmetry (mirror)", "mm"),
-    ("trunk_length_mm", "Trunk length VP–SP", "mm"),
-]
-
-
 def _flat(indices):
     from analysis.repeatability import flatten
 
@@ -109,10 +97,28 @@ def _reconstructions(user):
     return Reconstruction.objects.filter(session__rig__clinic__in=clinics_of(user))
 
 
+def _good_recs():
+    return Reconstruction.objects.filter(status__in=["ok", "partial"], job__state=Job.SUCCEEDED)
+
+
 def _best(visit):
     """The visit's torso shown to clinicians: its latest good reconstruction (or None)."""
-    return (Reconstruction.objects.filter(session__visit=visit, status__in=["ok", "partial"],
-                                          job__state=Job.SUCCEEDED).order_by("-created").first())
+    return _good_recs().filter(session__visit=visit).order_by("-created").first()
+
+
+def _scans(patient) -> list:
+    """Every good reconstruction of the patient in time order, each with a label a clinician can choose by."""
+    recs = list(_good_recs().filter(session__visit__patient=patient).select_related("session__visit")
+                .order_by("session__visit__date", "session__visit_id", "created", "pk"))
+    per_visit = {}
+    for r in recs:
+        per_visit.setdefault(r.session.visit_id, []).append(r)
+    for r in recs:
+        same = per_visit[r.session.visit_id]
+        k = same.index(r) + 1
+        r.scan_label = (f"{r.session.visit.date} · scan {k} of {len(same)}" if len(same) > 1
+                        else f"{r.session.visit.date}") + (f" · {r.session.visit.reason}" if r.session.visit.reason else "")
+    return recs
 
 
 def _mdc(clinic):
@@ -127,7 +133,192 @@ def _noise(clinic) -> dict:
 
     from .analysis_step import repeat_pairs
 
-    return {"pairs": repeat_pairs(clinic), "needed": MIN_REPEAT_PAIRS}
+    pairs = repeat_pairs(clinic)
+    return {"pairs": pairs, "needed": MIN_REPEAT_PAIRS, "ready": pairs >= MIN_REPEAT_PAIRS}
+
+
+# --- words for a clinician ------------------------------------------------------------------
+
+def _age(born, on) -> str | None:
+    """Age in years and months on a date ("12 y 4 mo"), or None without a date of birth."""
+    if not born or not on:
+        return None
+    months = (on.year - born.year) * 12 + on.month - born.month - (on.day < born.day)
+    if months < 0:
+        return None
+    return f"{months // 12} y {months % 12} mo"
+
+
+def _span(earlier, later) -> str:
+    """The time between two dates in words."""
+    days = (later - earlier).days
+    if days <= 0:
+        return "the same day"
+    if days < 60:
+        return f"{days} day{'s' if days != 1 else ''}"
+    months = round(days / 30.44)
+    if months < 24:
+        return f"{months} months"
+    return f"{months / 12:.1f} years"
+
+
+def _patient_context(p, on=None) -> dict:
+    """What names the patient on every page: name, identifier, date of birth, age (now and on ``on``)."""
+    from django.utils import timezone
+
+    return {"patient": p, "age_now": _age(p.date_of_birth, timezone.localdate()),
+            "age_then": _age(p.date_of_birth, on) if on else None, "age_on": on}
+
+
+def _not_measurable(rec, when: str) -> dict | None:
+    nm = (rec.indices or {}).get("not_measurable") if rec else None
+    if not nm:
+        return None
+    mark = [labels.landmark(m) for m in nm.get("mark") or []]
+    facing = (((rec.indices or {}).get("frame") or {}).get("facing") or {}).get("status") == "uncertain"
+    if facing and not mark:
+        mark = [labels.landmark("vertebra_prominens")]
+    names = {labels.label(k) for k in _flat_keys_of(nm.get("indices") or [])}
+    reason = nm.get("reason", "")
+    for prefix in ("not measurable on this scan: ", "not measurable on this scan; "):
+        reason = reason[len(prefix):] if reason.startswith(prefix) else reason
+    return {"when": when, "visit_id": rec.session.visit_id, "reason": reason,
+            "mark": mark, "indices": sorted(names)}
+
+
+def _flat_keys_of(bases) -> list:
+    """The labelled keys resting on the report's top-level figures ``bases``."""
+    return [k for k in labels.TABLE_KEYS if k.split(".")[0] in bases]
+
+
+def _verdict(clinic, earlier, later, title, mdc=None, noise=None, sides_agree=None, growth=None) -> dict:
+    """The headline of two scans: what changed beyond the scanner's noise (by how much, where), what stayed
+    within it, what cannot be judged yet and why, what is not measurable, and growth apart."""
+    from analysis.repeatability import index_changes
+
+    mdc = _mdc(clinic) if mdc is None else mdc
+    noise = _noise(clinic) if noise is None else noise
+    comp = Comparison.objects.filter(earlier=earlier, later=later).first()
+    if sides_agree is None:
+        sides_agree = ((comp.report.get("facing") or {}).get("consistent", True)) if comp else True
+    if growth is None and comp:
+        growth = comp.report.get("growth")
+    changes = index_changes(earlier.indices or {}, later.indices or {}, mdc, sides_agree=sides_agree)
+    out = {"title": title, "earlier": earlier, "later": later,
+           "earlier_date": earlier.session.visit.date, "later_date": later.session.visit.date,
+           "span": _span(earlier.session.visit.date, later.session.visit.date),
+           "repeat": earlier.session.visit_id == later.session.visit_id, "noise": noise,
+           "beyond": [], "within": [], "unjudged": [], "growth": [], "sides_agree": sides_agree,
+           "not_measurable": [x for x in (_not_measurable(earlier, f"the scan of {earlier.session.visit.date}"),
+                                          _not_measurable(later, f"the scan of {later.session.visit.date}")) if x]}
+    for key in labels.HEADLINE_KEYS + labels.GROWTH_KEYS:
+        c = changes.get(key)
+        if c is None:
+            continue
+        ix = labels.index(key)
+        item = {"label": ix.label, "meaning": ix.meaning, "unit": ix.unit,
+                "change": f"{c['change']:+.1f}{'' if ix.unit == '°' else ' '}{ix.unit}",
+                "size": abs(c["change"]),
+                "from_to": f"{labels.size_words(key, c['earlier'])} → {labels.size_words(key, c['later'])}",
+                "mdc": None if c["mdc"] is None else f"± {c['mdc']:.1f}{'' if ix.unit == '°' else ' '}{ix.unit}",
+                "where": [s["words"] for s in labels.sides(later.indices, key)]}
+        if ix.growth:
+            out["growth"].append(item)
+        elif c["exceeds_mdc"] is True:
+            out["beyond"].append(item)
+        elif c["exceeds_mdc"] is False:
+            out["within"].append(item)
+        else:
+            out["unjudged"].append(item)
+    out["unjudged"].sort(key=lambda x: -x["size"] if x["unit"] == "mm" else -3 * x["size"])
+    for key, name in labels.GROWTH_FIGURES[1:]:
+        ch = ((growth or {}).get("change") or {}).get(key)
+        if ch is not None:
+            out["growth"].append({"label": name, "change": f"{ch:+.1f} mm",
+                                  "from_to": f"{growth['earlier'][key]:.1f} mm → {growth['later'][key]:.1f} mm"})
+    return out
+
+
+def _headline(p, scans_by_visit, mdc, noise) -> list:
+    """Since the baseline and since the last visit, for the patient's latest scan."""
+    recs = [r for r in scans_by_visit if r is not None]
+    if len(recs) < 2:
+        return []
+    base, prev, latest = recs[0], recs[-2], recs[-1]
+    out = [_verdict(p.clinic, base, latest, "Since the baseline", mdc, noise)]
+    if prev != base:
+        out.append(_verdict(p.clinic, prev, latest, "Since the last visit", mdc, noise))
+    return out
+
+
+# thresholds of the scan-quality verdict: (good up to, usable up to); beyond: repeat the scan
+PAIR_DISTANCE_MM = (0.5, 1.0)  # average normal distance between neighbouring arms after registration
+OVERLAP_MATCHED = (0.9, 0.6)  # share of each overlap that registered (at least)
+
+
+def _quality(rec) -> dict:
+    """One verdict on a scan, in words: good, usable or repeat the scan, and why."""
+    if rec is None:
+        return {"verdict": "none", "words": "No torso yet", "reasons": []}
+    report = rec.report or {}
+    reasons, level = [], 0  # 0 good, 1 usable, 2 repeat
+
+    def worse(k, why):
+        nonlocal level
+        level = max(level, k)
+        reasons.append(why)
+
+    if rec.status == "failed":
+        worse(2, "the reconstruction failed")
+    elif rec.status == "partial":
+        worse(1, "part of the torso is missing (an arm of the rig gave no surface)")
+    for prob in report.get("problems") or []:
+        worse(1, str(prob))
+    pairs = (report.get("registration") or {}).get("pairs") or []
+    for pair in pairs:
+        d, m = pair.get("average_normal_distance_mm"), pair.get("overlap_matched_fraction")
+        name = f"arms {pair.get('a')} and {pair.get('b')}"
+        if d is not None and d > PAIR_DISTANCE_MM[1]:
+            worse(2, f"{name} fit together only to {d:.2f} mm (the patient may have moved)")
+        elif d is not None and d > PAIR_DISTANCE_MM[0]:
+            worse(1, f"{name} fit together to {d:.2f} mm only")
+        if m is not None and m < OVERLAP_MATCHED[1]:
+            worse(2, f"only {100 * m:.0f} % of the overlap of {name} matched")
+        elif m is not None and m < OVERLAP_MATCHED[0]:
+            worse(1, f"{100 * m:.0f} % of the overlap of {name} matched")
+    ind = rec.indices or {}
+    for name, lm in (ind.get("landmarks") or {}).items():
+        conf = lm.get("confidence")
+        if conf not in (None, "high", "clinician"):
+            worse(1, f"the {labels.landmark(name)} was placed with {conf} confidence: check it or mark it")
+    facing = ((ind.get("frame") or {}).get("facing") or {})
+    if facing.get("status") == "uncertain":
+        worse(1, "the patient's facing is uncertain, so left and right cannot be told: mark C7 on the back")
+    if rec.indices is None:
+        worse(1, "the indices are not computed yet")
+    words = ("Good scan", "Usable scan, with reservations", "Repeat the scan")[level]
+    return {"verdict": ("good", "usable", "repeat")[level], "words": words, "reasons": reasons}
+
+
+def _index_rows(indices) -> list:
+    """The visit page's indices: label, value with its side in words, where it is largest, meaning."""
+    flat = _flat(indices)
+    withheld = set(((indices or {}).get("not_measurable") or {}).get("indices") or [])
+    rows = []
+    for key in labels.TABLE_KEYS:
+        ix = labels.index(key)
+        v = flat.get(key)
+        rows.append({"label": ix.label, "unit": ix.unit, "meaning": ix.meaning, "growth": ix.growth,
+                     "value": labels.size_words(key, v) if v is not None else None,
+                     "not_measurable": v is None and key.split(".")[0] in withheld,
+                     "where": [s["words"] for s in labels.sides(indices, key)] if v is not None else []})
+    return rows
+
+
+def _pictures(kind, obj) -> list:
+    return [{"name": name, "title": labels.picture(name)[0], "alt": labels.picture(name)[1],
+             "src": reverse("picture", args=[kind, obj.pk, name]),
+             "page": reverse("picture_page", args=[kind, obj.pk, name])} for name in (obj.pictures or {})]
 
 
 @login_required
@@ -140,55 +331,85 @@ def patients(request):
     rigs = Rig.objects.filter(clinic__in=clinics_of(request.user))
     administered = [c for c in clinics_of(request.user) if _may(request, c.pk, MANAGE_MEMBERS)]
     return render(request, "clinic/patients.html", {"patients": rows, "q": q, "rigs": rigs,
-                                                    "administered": administered})
+                                                    "administered": administered,
+                                                    "may_edit": any(_may(request, c.pk, EDIT_PATIENTS)
+                                                                    for c in clinics_of(request.user))})
 
 
 @login_required
 def patient(request, patient_id):
-    """A patient's history: visits on a timeline, index trends with their MDC band, the latest pictures."""
+    """A patient's history: the headline (what changed beyond noise), visits, index trends, the latest pictures."""
     p = get_object_or_404(_patients(request.user), pk=patient_id)
+    scans = _scans(p)
     visits = []
     for v in p.visits.all():
         rec = _best(v)
         jobs = Job.objects.filter(session__visit=v).order_by("-created")
-        visits.append({"visit": v, "rec": rec, "job": jobs.first(), "flat": _flat(rec.indices if rec else None)})
+        visits.append({"visit": v, "rec": rec, "job": jobs.first(), "flat": _flat(rec.indices if rec else None),
+                       "age": _age(p.date_of_birth, v.date), "quality": _quality(rec) if rec else None,
+                       "scans": sum(1 for s in scans if s.session.visit_id == v.pk)})
     mdc = _mdc(p.clinic)
+    noise = _noise(p.clinic)
     rows = []
-    for key, label, unit in INDEX_ROWS:
+    for key in labels.TABLE_KEYS:
+        ix = labels.index(key)
         vals = [x["flat"].get(key) for x in visits]
         m = (mdc.get(key) or {}).get("mdc")
         first = next((v for v in vals if v is not None), None)
-        rows.append({"label": label, "unit": unit, "mdc": m,
-                     "cells": [{"value": v, "beyond": (v is not None and first is not None and m is not None
-                                                       and abs(v - first) > m)} for v in vals]})
+        rows.append({"label": ix.label, "unit": ix.unit, "meaning": ix.meaning, "mdc": m, "growth": ix.growth,
+                     "cells": [{"value": v, "beyond": (not ix.growth and v is not None and first is not None
+                                                       and m is not None and abs(v - first) > m)} for v in vals]})
     latest = next((x["rec"] for x in reversed(visits) if x["rec"]), None)
-    with_torso = [x["visit"] for x in visits if x["rec"]]
+    headline = _headline(p, [x["rec"] for x in visits], mdc, noise)
     return render(request, "clinic/patient.html", {
-        "patient": p, "visits": visits, "rows": rows, "latest": latest, "with_torso": with_torso,
-        "noise": _noise(p.clinic),
-        "earlier_default": with_torso[0].pk if with_torso else None,
-        "later_default": with_torso[-1].pk if with_torso else None})
+        **_patient_context(p), "visits": visits, "rows": rows, "latest": latest, "scans": scans,
+        "noise": noise, "headline": headline,
+        "latest_pictures": _pictures("reconstruction", latest) if latest else [],
+        "earlier_default": scans[0].pk if scans else None, "later_default": latest.pk if latest else None,
+        "may_edit": _may(request, p.clinic_id, EDIT_PATIENTS)})
+
+
+def _trend_name(p, series, mdc) -> str:
+    """Where the trend picture of these scans and this MDC state is kept (a new state, a new name)."""
+    import hashlib
+
+    state = json.dumps([[str(d), pk, ind] for d, pk, ind in series] + [mdc], sort_keys=True, default=str)
+    return f"trends/patient-{p.pk}/{hashlib.sha256(state.encode()).hexdigest()[:24]}.png"
 
 
 @login_required
 def patient_trend(request, patient_id):
-    """The trend plot of every index over the patient's visits (PNG, drawn on request)."""
-    from analysis.pictures import trend_picture
+    """The trend plot of every index over the patient's visits (PNG): drawn once per state of the scans and
+    MDC, then served from storage."""
+    from analysis import pictures
 
     p = get_object_or_404(_patients(request.user), pk=patient_id)
-    series = [(str(v.date), rec.indices) for v in p.visits.all() if (rec := _best(v)) and rec.indices]
+    series = [(v.date, rec.pk, rec.indices) for v in p.visits.all() if (rec := _best(v)) and rec.indices]
     if not series:
         raise Http404("no visit with a torso yet")
     mdc = {k: v["mdc"] for k, v in _mdc(p.clinic).items()}
+    name = _trend_name(p, series, mdc)
+    if default_storage.exists(name):
+        return FileResponse(default_storage.open(name, "rb"), content_type="image/png")
+    figures = [(k, labels.label(k) + (f" ({labels.unit(k)})" if labels.unit(k) else ""))
+               for k, _ in pictures.TREND_FIGURES]
     with tempfile.TemporaryDirectory() as tmp:
-        png = trend_picture(series, Path(tmp) / "trend.png", mdc=mdc)
+        png = pictures.trend_picture([(str(d), ind) for d, _, ind in series], Path(tmp) / "trend.png", mdc=mdc,
+                                     figures=figures)
         data = Path(png).read_bytes()
+    try:  # the older states' pictures of this patient go
+        folder = str(Path(name).parent)
+        for old in default_storage.listdir(folder)[1]:
+            default_storage.delete(f"{folder}/{old}")
+    except (OSError, NotImplementedError):
+        pass
+    default_storage.save(name, ContentFile(data))
     return HttpResponse(data, content_type="image/png")
 
 
 @login_required
 def visit(request, visit_id):
-    """A visit: torso pictures, the reconstruction's quality figures, indices, the job's progress."""
+    """A visit: its verdict on the scan's quality, torso pictures, indices in words; technical details folded."""
     v = get_object_or_404(Visit.objects.filter(patient__clinic__in=clinics_of(request.user)), pk=visit_id)
     rec = _best(v)
     jobs = list(Job.objects.filter(session__visit=v).order_by("-created"))
@@ -196,12 +417,17 @@ def visit(request, visit_id):
     report = rec.report if rec else {}
     pairs = report.get("registration", {}).get("pairs", [])
     arms = {a: {"points": r.get("points"), "sigma": r.get("sigma_mm_median")} for a, r in report.get("arms", {}).items()}
+    scans = [s for s in _scans(v.patient) if s.session.visit_id == v.pk]
     return render(request, "clinic/visit.html", {
+        **_patient_context(v.patient, v.date),
         "visit": v, "rec": rec, "jobs": jobs, "running": running, "pairs": pairs, "arms": arms,
-        "flat": _flat(rec.indices if rec else None), "index_rows": INDEX_ROWS,
+        "quality": _quality(rec), "index_rows": _index_rows(rec.indices if rec else None),
+        "not_measurable": _not_measurable(rec, "this scan") if rec else None,
+        "pictures": _pictures("reconstruction", rec) if rec else [], "scans": scans,
         "landmarks": (rec.indices or {}).get("landmarks", {}) if rec else {},
         "may_rerun": _may(request, v.patient.clinic_id),
-        "may_correct": _may(request, v.patient.clinic_id, CORRECT_LANDMARKS)})
+        "may_correct": _may(request, v.patient.clinic_id, CORRECT_LANDMARKS),
+        "may_edit": _may(request, v.patient.clinic_id, EDIT_PATIENTS)})
 
 
 @login_required
@@ -235,40 +461,75 @@ def correct_landmarks(request, visit_id):
 
 @login_required
 def comparison(request, patient_id):
-    """Two chosen visits: deformation map, per-region changes, index changes flagged against the MDC."""
+    """Any two scans of the patient (two visits, or a same-day re-scan): the verdict, then the deformation map,
+    per-region changes and every index's change against the scanner's noise."""
     from analysis.repeatability import index_changes
 
     from .analysis_step import compare_reconstructions
 
     p = get_object_or_404(_patients(request.user), pk=patient_id)
+    back = reverse("patient", args=[p.pk])
+    scans = _scans(p)
+    order = {r.pk: k for k, r in enumerate(scans)}
+    by_pk = {r.pk: r for r in scans}
     try:
-        earlier_v = get_object_or_404(p.visits, pk=int(request.GET.get("earlier", "")))
-        later_v = get_object_or_404(p.visits, pk=int(request.GET.get("later", "")))
+        if "earlier_scan" in request.GET or "later_scan" in request.GET:
+            earlier, later = (by_pk.get(int(request.GET.get(f, ""))) for f in ("earlier_scan", "later_scan"))
+            if earlier is None or later is None:
+                raise Http404("no such scan of this patient")
+        else:  # two visits: each one's scan shown to clinicians; one visit twice: its first scan and its latest
+            earlier_v = get_object_or_404(p.visits, pk=int(request.GET.get("earlier", "")))
+            later_v = get_object_or_404(p.visits, pk=int(request.GET.get("later", "")))
+            if earlier_v == later_v:
+                same = [r for r in scans if r.session.visit_id == earlier_v.pk]
+                earlier, later = (same[0], same[-1]) if same else (None, None)
+            else:
+                earlier, later = _best(earlier_v), _best(later_v)
+            if earlier is None or later is None:
+                return _refused(request, "Both visits need a reconstructed torso to be compared.", 404, back)
+            earlier, later = by_pk.get(earlier.pk), by_pk.get(later.pk)
     except ValueError:
-        raise Http404("choose two visits") from None
-    if (later_v.date, later_v.pk) < (earlier_v.date, earlier_v.pk):
-        earlier_v, later_v = later_v, earlier_v
-    earlier, later = _best(earlier_v), _best(later_v)
-    if earlier is None or later is None or earlier == later:
-        raise Http404("both visits need a reconstructed torso")
+        raise Http404("choose two scans") from None
+    if earlier == later:
+        return _refused(request, "Choose two different scans: this visit has one scan only, and a scan compared "
+                                 "with itself shows nothing. A same-day re-scan can be compared once it exists.",
+                        400, back)
+    if order[later.pk] < order[earlier.pk]:
+        earlier, later = later, earlier
     comp = compare_reconstructions(earlier, later)
     mdc = _mdc(p.clinic)
+    noise = _noise(p.clinic)
     facing = comp.report.get("facing") or {}
+    repeat = earlier.session.visit_id == later.session.visit_id
+    verdict = _verdict(p.clinic, earlier, later, "Same-day re-scan" if repeat else "Between these scans", mdc,
+                       noise, sides_agree=facing.get("consistent", True), growth=comp.report.get("growth"))
     changes = index_changes(earlier.indices or {}, later.indices or {}, mdc,
                             sides_agree=facing.get("consistent", True))
-    labels = {k: (label, unit) for k, label, unit in INDEX_ROWS}
-    index_rows = [{"label": labels.get(k, (k, ""))[0], "unit": labels.get(k, ("", ""))[1], **c}
-                  for k, c in changes.items()]
+    index_rows = []
+    for key in labels.TABLE_KEYS:
+        c = changes.get(key)
+        if c is None:
+            continue
+        ix = labels.index(key)
+        index_rows.append({"label": ix.label, "unit": ix.unit, "meaning": ix.meaning, "growth": ix.growth,
+                           "earlier": labels.size_words(key, c["earlier"]), "later": labels.size_words(key, c["later"]),
+                           "change": c["change"], "mdc": c["mdc"], "exceeds_mdc": c["exceeds_mdc"]})
     regions = []
     for name, stats in (comp.report.get("regions") or {}).items():
         m = (mdc.get(f"regions.{name}.mean") or {}).get("mdc")
         mean = stats.get("mean")
-        regions.append({"name": name.replace("_", " "), **stats, "mdc": m,
-                        "beyond": None if m is None or mean is None else abs(mean) > m})
+        regions.append({"name": labels.region(name), "mean": mean, "p05": stats.get("p05"), "p95": stats.get("p95"),
+                        "mdc": m, "beyond": None if m is None or mean is None else abs(mean) > m})
+    growth = comp.report.get("growth")
+    growth_rows = [{"label": name, "earlier": growth["earlier"].get(key), "later": growth["later"].get(key),
+                    "change": growth["change"].get(key)} for key, name in labels.GROWTH_FIGURES] if growth else []
     return render(request, "clinic/comparison.html", {
-        "patient": p, "earlier": earlier_v, "later": later_v, "comparison": comp, "report": comp.report,
-        "regions": regions, "index_rows": index_rows, "facing": facing, "noise": _noise(p.clinic), "growth": comp.report.get("growth"),
-        "repeat": comp.is_repeat})
+        **_patient_context(p), "earlier": earlier, "later": later, "earlier_date": earlier.session.visit.date,
+        "later_date": later.session.visit.date, "comparison": comp, "report": comp.report,
+        "regions": regions, "index_rows": index_rows, "facing": facing, "noise": noise, "growth_rows": growth_rows,
+        "repeat": repeat, "verdict": verdict, "scans": scans,
+        "pictures": _pictures("comparison", comp),
+        "quality": {"earlier": _quality(earlier), "later": _quality(later)}})
 
 
 @login_required
@@ -366,6 +627,30 @@ def picture(request, kind, pk, name):
 
 
 @login_required
+def picture_page(request, kind, pk, name):
+    """A picture at full size, under the name of the patient it shows."""
+    if kind == "reconstruction":
+        obj = get_object_or_404(_reconstructions(request.user), pk=pk)
+        rec, subject = obj, None
+    elif kind == "comparison":
+        obj = get_object_or_404(Comparison.objects.filter(later__session__rig__clinic__in=clinics_of(request.user)),
+                                pk=pk)
+        rec, subject = obj.later, obj
+    else:
+        raise Http404(kind)
+    if name not in (obj.pictures or {}):
+        raise Http404(f"no picture {name!r}")
+    v = rec.session.visit
+    if v is None:
+        raise Http404("not a patient's picture")
+    title, alt = labels.picture(name)
+    return render(request, "clinic/picture.html", {
+        **_patient_context(v.patient, v.date), "visit": v, "title": title, "alt": alt,
+        "src": reverse("picture", args=[kind, pk, name]), "comparison": subject,
+        "earlier_date": subject.earlier.session.visit.date if subject else None})
+
+
+@login_required
 @require_POST
 def rerun(request, job_id):
     job = get_object_or_404(Job.objects.filter(rig__clinic__in=clinics_of(request.user)), uid=job_id)
@@ -452,3 +737,123 @@ def remove_member(request, clinic_id, member_id):
         member.delete()
     messages.success(request, f"{member.user.username} removed from {clinic.name}.")
     return redirect(back if member.user != request.user else "patients")
+
+
+# --- patients and visits, made and edited in the pages ------------------------------------------
+
+class PatientForm(forms.ModelForm):
+    class Meta:
+        model = Patient
+        fields = ["clinic", "identifier", "name", "date_of_birth", "sex", "notes"]
+        widgets = {"date_of_birth": forms.DateInput(attrs={"type": "date"}), "notes": forms.Textarea(attrs={"rows": 3})}
+        labels = {"identifier": "Identifier (the clinic's patient number)"}
+
+    def __init__(self, *args, clinics=None, **kw):
+        super().__init__(*args, **kw)
+        if self.instance.pk:
+            del self.fields["clinic"]
+        else:
+            self.fields["clinic"].queryset = clinics
+            if clinics is not None and clinics.count() == 1:
+                self.fields["clinic"].initial = clinics.first()
+
+    def clean_date_of_birth(self):
+        from django.utils import timezone
+
+        born = self.cleaned_data.get("date_of_birth")
+        if born and born > timezone.localdate():
+            raise forms.ValidationError("The date of birth cannot be in the future.")
+        return born
+
+    def clean(self):
+        data = super().clean()
+        clinic = data.get("clinic") or getattr(self.instance, "clinic", None)
+        ident = data.get("identifier")
+        if clinic and ident and Patient.objects.filter(clinic=clinic, identifier=ident).exclude(
+                pk=self.instance.pk).exists():
+            self.add_error("identifier", f"{clinic.name} already has a patient with the identifier {ident}.")
+        return data
+
+
+class VisitForm(forms.ModelForm):
+    class Meta:
+        model = Visit
+        fields = ["date", "reason", "notes"]
+        widgets = {"date": forms.DateInput(attrs={"type": "date"}), "notes": forms.Textarea(attrs={"rows": 4})}
+
+    def clean_date(self):
+        d = self.cleaned_data.get("date")
+        born = self.instance.patient.date_of_birth if self.instance.patient_id else None
+        if d and born and d < born:
+            raise forms.ValidationError("The visit cannot be before the patient's date of birth.")
+        return d
+
+
+def _form_page(request, form, title, context=None, status=200):
+    return render(request, "clinic/form.html", {"form": form, "title": title, **(context or {})}, status=status)
+
+
+def _editable_clinics(request):
+    return clinics_of(request.user).filter(pk__in=[c.pk for c in clinics_of(request.user)
+                                                   if _may(request, c.pk, EDIT_PATIENTS)])
+
+
+@login_required
+def new_patient(request):
+    clinics = _editable_clinics(request)
+    if not clinics.exists():
+        raise PermissionDenied("you are not a member of any clinic")
+    form = PatientForm(request.POST or None, clinics=clinics)
+    if request.method == "POST":
+        if form.is_valid():
+            _require_role(request, form.cleaned_data["clinic"].pk, EDIT_PATIENTS)
+            p = form.save()
+            messages.success(request, f"Patient {p.name} ({p.identifier}) created.")
+            return redirect("patient", patient_id=p.pk)
+        return _form_page(request, form, "New patient", status=400)
+    return _form_page(request, form, "New patient")
+
+
+@login_required
+def edit_patient(request, patient_id):
+    p = get_object_or_404(_patients(request.user), pk=patient_id)
+    _require_role(request, p.clinic_id, EDIT_PATIENTS)
+    form = PatientForm(request.POST or None, instance=p)
+    ctx = _patient_context(p)
+    if request.method == "POST":
+        if form.is_valid():
+            form.save()
+            messages.success(request, "Patient saved.")
+            return redirect("patient", patient_id=p.pk)
+        return _form_page(request, form, f"Edit {p.name}", ctx, status=400)
+    return _form_page(request, form, f"Edit {p.name}", ctx)
+
+
+@login_required
+def new_visit(request, patient_id):
+    p = get_object_or_404(_patients(request.user), pk=patient_id)
+    _require_role(request, p.clinic_id, EDIT_PATIENTS)
+    form = VisitForm(request.POST or None, instance=Visit(patient=p, clinician=request.user))
+    ctx = _patient_context(p)
+    if request.method == "POST":
+        if form.is_valid():
+            v = form.save()
+            messages.success(request, f"Visit of {v.date} created: the rig can now upload its scans for it.")
+            return redirect("visit", visit_id=v.pk)
+        return _form_page(request, form, "New visit", ctx, status=400)
+    return _form_page(request, form, "New visit", ctx)
+
+
+@login_required
+def edit_visit(request, visit_id):
+    v = get_object_or_404(Visit.objects.filter(patient__clinic__in=clinics_of(request.user)), pk=visit_id)
+    _require_role(request, v.patient.clinic_id, EDIT_PATIENTS)
+    form = VisitForm(request.POST or None, instance=v)
+    ctx = _patient_context(v.patient, v.date)
+    if request.method == "POST":
+        if form.is_valid():
+            form.save()
+            messages.success(request, "Visit saved.")
+            return redirect("visit", visit_id=v.pk)
+        return _form_page(request, form, f"Edit the visit of {v.date}", ctx, status=400)
+    return _form_page(request, form, f"Edit the visit of {v.date}", ctx)
