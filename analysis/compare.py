@@ -69,13 +69,16 @@ def regions_of(analysis, torso: Torso, cfg) -> dict:
 
 
 def compare_torsos(earlier: Torso, later: Torso, cfg: AnalysisConfig | None = None, mdc: dict | None = None,
-                   earlier_analysis=None, landmarks: dict | None = None) -> dict:
+                   earlier_analysis=None, landmarks: dict | None = None, later_analysis=None,
+                   later_landmarks: dict | None = None) -> dict:
     """Compare two visits; returns ``{"report": torso-comparison/1 dict, "points" (later in the earlier
     frame, (N, 3)), "normals", "deformation_mm" (N,), "regions" (name -> mask over the later points)}``.
 
     ``mdc``: optional minimal detectable changes (:func:`analysis.repeatability.mdc_from_comparisons`),
     figure name -> mm; every figure with one gets an ``exceeds_mdc`` flag.
-    ``landmarks``: clinician corrections of the earlier torso's landmarks (rig frame).
+    ``landmarks`` / ``later_landmarks``: clinician corrections of each torso's landmarks (its own rig frame).
+    Each torso is analysed where it stands (or ``earlier_analysis`` / ``later_analysis`` are taken as they
+    are), so the growth and the indices here are the very numbers of each torso's own indices report.
     """
     cfg = cfg or AnalysisConfig()
     cc = cfg.compare
@@ -103,18 +106,21 @@ def compare_torsos(earlier: Torso, later: Torso, cfg: AnalysisConfig | None = No
     regions = {}
     try:
         ea = earlier_analysis or analyse_torso(earlier, cfg, landmarks)
-        la = analyse_torso(moved, cfg)
+        # the later torso analysed where it stands, as its own indices were: lengths and indices do not
+        # depend on the rigid placement, and a second analysis of the moved torso gave other landmarks
+        # (the trunk length read 502.6 mm in the growth and 511.0 mm in the indices of one comparison)
+        la = later_analysis or analyse_torso(later, cfg, later_landmarks)
         # regions: each later point takes the region of the earlier point it lies over
         masks = regions_of(ea, earlier, cfg)
         _, nb = index.tree.query(moved.points, k=1)
         regions = {k: m[nb] & mapped for k, m in masks.items()}
         report["regions"] = {k: _stats(deformation[m]) for k, m in regions.items()}
-        g0, g1 = trunk_size(ea, earlier, cfg), trunk_size(la, moved, cfg)
+        g0, g1 = trunk_size(ea, earlier, cfg), trunk_size(la, later, cfg)
         report["growth"] = {"earlier": g0, "later": g1,
                             "change": {k: (g1[k] - g0[k]) if g0[k] is not None and g1[k] is not None else None
                                        for k in g0}}
         report["indices"] = {"earlier": _headline(ea.report), "later": _headline(la.report)}
-        report["facing"] = facing_agreement(ea, la)
+        report["facing"] = facing_agreement(ea, la, R)
         if not report["facing"]["consistent"]:
             report.setdefault("warnings", []).append(report["facing"]["reason"])
     except ValueError as exc:
@@ -133,10 +139,11 @@ def compare_torsos(earlier: Torso, later: Torso, cfg: AnalysisConfig | None = No
 FACING_AGREEMENT_DEG = 45.0
 
 
-def facing_agreement(earlier_analysis, later_analysis) -> dict:
-    """Whether two analyses (the later one on the later torso moved into the earlier frame) agree on where
-    the patient's back faces, and so on the patient's left and right: ``{"angle_deg", "consistent", ...}``."""
-    a, b = earlier_analysis.frame.R[1], later_analysis.frame.R[1]
+def facing_agreement(earlier_analysis, later_analysis, R=None) -> dict:
+    """Whether two analyses agree on where the patient's back faces, and so on the patient's left and right:
+    ``{"angle_deg", "consistent", ...}``. ``R`` turns the later torso's frame into the earlier's."""
+    a = earlier_analysis.frame.R[1]
+    b = later_analysis.frame.R[1] if R is None else np.asarray(R) @ later_analysis.frame.R[1]
     angle = float(np.degrees(np.arccos(np.clip(a @ b, -1.0, 1.0))))
     fe = earlier_analysis.report.get("frame", {}).get("facing", {})
     fl = later_analysis.report.get("frame", {}).get("facing", {})

@@ -88,6 +88,7 @@ def compare_reconstructions(earlier: Reconstruction, later: Reconstruction) -> C
         tmp = Path(tmp)
         result = compare_torsos(read_torso(_local(earlier.torso, tmp / "earlier.ply")),
                                 read_torso(_local(later.torso, tmp / "later.ply")),
+                                landmarks=earlier.landmarks or None, later_landmarks=later.landmarks or None,
                                 mdc={k: v["mdc"] for k, v in mdc.items()} or None)
         write_comparison(tmp / "out", result)
         report = json.loads((tmp / "out" / "report.json").read_text())

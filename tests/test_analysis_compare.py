@@ -75,3 +75,14 @@ def test_mdc_from_repeat_pairs():
     assert exceeds_mdc(1.0, None) is None
     m2 = mdc_from_comparisons([{"signed_distance_mm": {"mean": 0.1}, "average_normal_distance_mm": 0.3}])
     assert m2["signed_distance_mm.mean"]["mdc"] == pytest.approx(0.196)
+
+
+def test_growth_and_indices_read_the_same_trunk_length_as_each_torsos_own_report(pair):
+    from analysis.indices import analyse_torso
+
+    earlier, later, *_ = pair
+    rep = compare_torsos(earlier, later)["report"]
+    own = analyse_torso(later).report
+    assert rep["growth"]["later"]["trunk_length_mm"] == pytest.approx(own["trunk_length_mm"], abs=1e-9)
+    assert rep["growth"]["earlier"]["trunk_length_mm"] == pytest.approx(analyse_torso(earlier).report["trunk_length_mm"],
+                                                                         abs=1e-9)
