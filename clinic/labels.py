@@ -153,11 +153,20 @@ def size_words(key: str, value) -> str:
     return _fmt(value, ix.unit)
 
 
-def change_words(value) -> str:
-    """A change's sign in words."""
-    if value is None:
-        return ""
-    return "larger" if value > 0 else "smaller" if value < 0 else "unchanged"
+def change_words(key: str, earlier, later) -> str:
+    """A change in words: for an index with a side, how much larger or smaller it grew on its side, or that it
+    changed side (a signed difference such as "-45.7 mm" says neither); otherwise the signed difference."""
+    if earlier is None or later is None:
+        return "–"
+    ix = index(key)
+    u = ix.unit
+    if ix.positive and not key.endswith(".rms"):
+        if earlier * later < 0:
+            return "changed side"
+        d = abs(later) - abs(earlier)
+        return f"{_fmt(abs(d), u)} {'larger' if d > 0 else 'smaller' if d < 0 else 'unchanged'}"
+    d = later - earlier
+    return f"{d:+.1f}{'' if u == '°' else ' '}{u}"
 
 
 def _trunk_height(sections) -> float | None:

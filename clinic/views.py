@@ -217,11 +217,11 @@ def _verdict(clinic, earlier, later, title, mdc=None, noise=None, sides_agree=No
             continue
         ix = labels.index(key)
         item = {"label": ix.label, "meaning": ix.meaning, "unit": ix.unit,
-                "change": f"{c['change']:+.1f}{'' if ix.unit == '°' else ' '}{ix.unit}",
+                "change": labels.change_words(key, c["earlier"], c["later"]),
                 "size": abs(c["change"]),
                 "from_to": f"{labels.size_words(key, c['earlier'])} → {labels.size_words(key, c['later'])}",
                 "mdc": None if c["mdc"] is None else f"± {c['mdc']:.1f}{'' if ix.unit == '°' else ' '}{ix.unit}",
-                "where": [s["words"] for s in labels.sides(later.indices, key)]}
+                "where": "; ".join(s["words"] for s in labels.sides(later.indices, key))}
         if ix.growth:
             out["growth"].append(item)
         elif c["exceeds_mdc"] is True:
@@ -513,7 +513,8 @@ def comparison(request, patient_id):
         ix = labels.index(key)
         index_rows.append({"label": ix.label, "unit": ix.unit, "meaning": ix.meaning, "growth": ix.growth,
                            "earlier": labels.size_words(key, c["earlier"]), "later": labels.size_words(key, c["later"]),
-                           "change": c["change"], "mdc": c["mdc"], "exceeds_mdc": c["exceeds_mdc"]})
+                           "change": labels.change_words(key, c["earlier"], c["later"]), "mdc": c["mdc"],
+                           "exceeds_mdc": c["exceeds_mdc"]})
     regions = []
     for name, stats in (comp.report.get("regions") or {}).items():
         m = (mdc.get(f"regions.{name}.mean") or {}).get("mdc")
