@@ -245,7 +245,7 @@ CELERY_ACCEPT_CONTENT = ["json"]
 # worker renews (every quarter of it); a queued step not taken for
 # JOB_REDISPATCH_SECONDS, or a claim whose lease lapsed, is sent again by the
 # sweeper, which beat runs every JOB_SWEEP_SECONDS. A worker that dies is thus
-# replaced within JOB_LEASE_SECONDS + JOB_SWEEP_SECONDS (once a worker is up).
+# replaced within JOB_LEASE_SECONDS + JOB_SWEEP_SECONDS (once a worker slot is free).
 JOB_LEASE_SECONDS = envint("JOB_LEASE_SECONDS", 120)
 JOB_REDISPATCH_SECONDS = envint("JOB_REDISPATCH_SECONDS", 60)
 JOB_SWEEP_SECONDS = envint("JOB_SWEEP_SECONDS", 30)
