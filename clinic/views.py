@@ -311,7 +311,9 @@ def _index_rows(indices) -> list:
         rows.append({"label": ix.label, "unit": ix.unit, "meaning": ix.meaning, "growth": ix.growth,
                      "value": labels.size_words(key, v) if v is not None else None,
                      "not_measurable": v is None and key.split(".")[0] in withheld,
-                     "where": [s["words"] for s in labels.sides(indices, key)] if v is not None else []})
+                     # an RMS is largest where its maximum is: said once, on the maximum's row
+                     "where": [s["words"] for s in labels.sides(indices, key)]
+                     if v is not None and not key.endswith(".rms") else []})
     return rows
 
 

@@ -33,5 +33,7 @@ def test_it_gives_the_quality_verdict_in_words_and_folds_the_figures(client, cha
     rec.save()
     html = client.get(f"/visits/{visit.pk}/").content.decode()
     assert "Scan quality: Repeat the scan" in html
-    assert "arms A and B fit together only to 1.60 mm" in html and "only 40 % of the overlap of arms B and C" in html
-    assert "part of the torso is missing" in html
+    reasons = html[html.index('id="quality"'):html.index("</section>")]
+    assert "Arms A and B fit together only to 1.60 mm" in reasons
+    assert "Only 40 % of the overlap of arms B and C matched" in reasons
+    assert "Part of the torso is missing" in reasons
