@@ -13,8 +13,12 @@ Observations
 
 Gauss–Newton with Levenberg–Marquardt damping on the normal equations; the
 Jacobian is sparse (every observation depends on one camera, one pose and one
-point) and is formed by central differences over each parameter block at
-once. Blunders are removed by iterated rejection of standardized residuals;
+point), is formed analytically from per-observation blocks and kept as a CSR
+matrix. The corners (3 unknowns each, thousands of them)
+are eliminated first from the sparse normal equations — their block is 3×3
+block diagonal — leaving a small dense system of the cameras and poses
+(14 unknowns per camera, 6 per pose: about 300 for a 20-camera rig) solved
+directly. Blunders are removed by iterated rejection of standardized residuals;
 precision comes from the inverse of the normal matrix scaled by the a
 posteriori variance factor.
 """
@@ -26,16 +30,17 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from .camera import distort_jacobian
+
 IOP_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 EOP_NAMES = ("rx", "ry", "rz", "X", "Y", "Z")
 CAM_NAMES = IOP_NAMES + EOP_NAMES
 N_CAM = len(CAM_NAMES)
 POSE_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
 
-# central-difference steps per parameter (px, unitless, rad, mm)
-_CAM_STEP = np.array([1e-3, 1e-3, 1e-3, 1e-3, 1e-6, 1e-6, 1e-7, 1e-7, 1e-6, 1e-7, 1e-7, 1e-7, 1e-3, 1e-3, 1e-3])
-_POSE_STEP = np.array([1e-7, 1e-7, 1e-7, 1e-3, 1e-3, 1e-3])
-_POINT_STEP = 1e-3
+# central-difference steps per camera parameter (px, unitless, rad, mm): what numerical derivatives of
+# a camera's projections use (the stability measures'); the adjustment's own Jacobian is analytic
+CAM_STEP = np.array([1e-3, 1e-3, 1e-3, 1e-3, 1e-6, 1e-6, 1e-7, 1e-7, 1e-6, 1e-7, 1e-7, 1e-7, 1e-3, 1e-3, 1e-3])
 
 
 def rodrigues(rvec: np.ndarray) -> np.ndarray:
@@ -105,6 +110,7 @@ class Solution:
     history: list = field(default_factory=list)
     cam_cov: np.ndarray | None = None  # (C, 15, 15) covariance of each camera's parameters (fixed ones zero)
     cams_cov: np.ndarray | None = None  # (C*15, C*15) joint covariance of all cameras' parameters (fixed ones zero)
+    reason: str = ""  # how the last round's iterations ended (see :func:`adjust`)
 
 
 def project_observations(cams, poses, points, cam, pose, point) -> np.ndarray:
@@ -124,68 +130,204 @@ def project_observations(cams, poses, points, cam, pose, point) -> np.ndarray:
     return np.column_stack([c[:, 0] * xd + c[:, 2], c[:, 1] * yd + c[:, 3]])
 
 
-def _jacobian(pb: Problem, cams, poses, points, free_cam, free_pose):
-    """Sparse Jacobian of the projections wrt the free parameters (central differences)."""
-    N = len(pb.uv)
+@dataclass(frozen=True)
+class Layout:
+    """Where each free parameter sits in the vector of unknowns: cameras, then poses 1.., then points.
+
+    ``cam_cols[c, j]`` is the column of camera ``c``'s parameter ``j`` (-1 when
+    held fixed); pose ``k`` ≥ 1 has columns ``base_pose + 6 (k - 1) + (0..5)``;
+    corner ``q`` has ``base_point + 3 q + (0..2)``.
+    """
+
+    cam_cols: np.ndarray  # (C, 15) int
+    free_cam: np.ndarray  # (15,) bool
+    free_pose: np.ndarray  # (P,) bool
+    base_pose: int
+    base_point: int
+    n_params: int
+
+
+def layout(n_cams: int, n_poses: int, n_points: int, free_cam: np.ndarray, free_pose: np.ndarray) -> Layout:
     n_cam_free = int(free_cam.sum())
-    C = len(cams)
-    rows, cols, vals = [], [], []
-    obs_rows = np.arange(N)
-    col = 0
-    cam_cols = np.full((C, N_CAM), -1)
-    for j in range(N_CAM):
-        if not free_cam[j]:
-            continue
-        cam_cols[:, j] = col + np.arange(C) * n_cam_free
-        col += 1
-    n_cam_total = C * n_cam_free
-    for j in range(N_CAM):
-        if not free_cam[j]:
-            continue
-        h = _CAM_STEP[j]
-        plus, minus = cams.copy(), cams.copy()
-        plus[:, j] += h
-        minus[:, j] -= h
-        d = (project_observations(plus, poses, points, pb.cam, pb.pose, pb.point)
-             - project_observations(minus, poses, points, pb.cam, pb.pose, pb.point)) / (2 * h)
-        for a in (0, 1):
-            rows.append(2 * obs_rows + a)
-            cols.append(cam_cols[pb.cam, j])
-            vals.append(d[:, a])
-    n_pose_free = int(free_pose.sum())  # poses 1.. are free
-    base_pose = n_cam_total
-    for j in range(6):
-        h = _POSE_STEP[j]
-        plus, minus = poses.copy(), poses.copy()
-        plus[:, j] += h
-        minus[:, j] -= h
-        d = (project_observations(cams, plus, points, pb.cam, pb.pose, pb.point)
-             - project_observations(cams, minus, points, pb.cam, pb.pose, pb.point)) / (2 * h)
-        sel = free_pose[pb.pose]
-        pose_col = base_pose + (np.cumsum(free_pose) - 1)[pb.pose[sel]] * 6 + j
-        for a in (0, 1):
-            rows.append(2 * obs_rows[sel] + a)
-            cols.append(pose_col)
-            vals.append(d[sel, a])
-    base_point = base_pose + n_pose_free * 6
-    for j in range(3):
-        h = _POINT_STEP
-        plus, minus = points.copy(), points.copy()
-        plus[:, j] += h
-        minus[:, j] -= h
-        d = (project_observations(cams, poses, plus, pb.cam, pb.pose, pb.point)
-             - project_observations(cams, poses, minus, pb.cam, pb.pose, pb.point)) / (2 * h)
-        for a in (0, 1):
-            rows.append(2 * obs_rows + a)
-            cols.append(base_point + pb.point * 3 + j)
-            vals.append(d[:, a])
-    n_params = base_point + len(points) * 3
-    J = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(2 * N, n_params))
-    return J, cam_cols, base_pose, base_point, n_params
+    cam_cols = np.full((n_cams, N_CAM), -1)
+    cam_cols[:, free_cam] = np.arange(n_cams)[:, None] * n_cam_free + np.arange(n_cam_free)
+    base_pose = n_cams * n_cam_free
+    base_point = base_pose + 6 * int(free_pose.sum())
+    return Layout(cam_cols, free_cam, free_pose, base_pose, base_point, base_point + 3 * n_points)
+
+
+def rotation_derivatives(rvec: np.ndarray, h: float = 1e-7) -> np.ndarray:
+    """Derivatives (..., 3, 3, 3) of :func:`rodrigues` wrt each Rodrigues component j at [..., j] (per rad).
+
+    Central differences on the few rotation matrices (one per camera or pose),
+    not on the projections: cheap, and as exact as the analytic form.
+    """
+    rvec = np.asarray(rvec, dtype=float)
+    step = h * np.eye(3)
+    return (rodrigues(rvec[..., None, :] + step) - rodrigues(rvec[..., None, :] - step)) / (2 * h)
+
+
+def jacobian_blocks(pb: Problem, cams, poses, points, free_cam):
+    """Per-observation derivative blocks of the projections (analytic chain rule, vectorised).
+
+    Returns ``(Jc, Jp, Jq)``: (N, 2, n_free_cam) wrt the observation's camera's
+    free parameters (px per px, per unit distortion term, per rad, per mm),
+    (N, 2, 6) wrt its pose (px per rad, per mm) and (N, 2, 3) wrt its corner
+    (px per mm, test-field frame), for the model of :func:`project_observations`.
+    """
+    c = cams[pb.cam]
+    Rp = rodrigues(poses[:, :3])[pb.pose]
+    Rc = rodrigues(cams[:, 9:12])[pb.cam]
+    X = points[pb.point]
+    d = np.einsum("nij,nj->ni", Rp, X) + poses[pb.pose, 3:] - c[:, 12:15]  # world point minus centre (mm)
+    xc = np.einsum("nij,nj->ni", Rc, d)
+    z = xc[:, 2]
+    x, y = xc[:, 0] / z, xc[:, 1] / z
+    fx, fy = c[:, 0], c[:, 1]
+    k1, k2, p1, p2, k3 = c[:, 4], c[:, 5], c[:, 6], c[:, 7], c[:, 8]
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    # d(u, v)/d(camera coordinates): focal lengths × distortion × perspective division
+    a11, a12, a21, a22 = distort_jacobian(x, y, c[:, 4:9].T)
+    dxy = np.zeros((len(z), 2, 3))
+    dxy[:, 0, 0] = dxy[:, 1, 1] = 1 / z
+    dxy[:, 0, 2], dxy[:, 1, 2] = -x / z, -y / z
+    G = np.stack([np.stack([fx * a11, fx * a12], -1), np.stack([fy * a21, fy * a22], -1)], 1) @ dxy  # (N, 2, 3)
+    zero, one = np.zeros_like(x), np.ones_like(x)
+    iop = np.stack([
+        np.stack([xd, zero], -1), np.stack([zero, yd], -1), np.stack([one, zero], -1), np.stack([zero, one], -1),
+        np.stack([fx * x * r2, fy * y * r2], -1), np.stack([fx * x * r2 ** 2, fy * y * r2 ** 2], -1),
+        np.stack([fx * 2 * x * y, fy * (r2 + 2 * y * y)], -1), np.stack([fx * (r2 + 2 * x * x), fy * 2 * x * y], -1),
+        np.stack([fx * x * r2 ** 3, fy * y * r2 ** 3], -1)], axis=2)  # (N, 2, 9)
+    GRc = G @ Rc
+    dRc = rotation_derivatives(cams[:, 9:12])[pb.cam]  # (N, j, 3, 3)
+    d_rot_cam = G @ np.einsum("njab,nb->naj", dRc, d)
+    Jc = np.concatenate([iop, d_rot_cam, -GRc], axis=2)[:, :, free_cam]
+    dRp = rotation_derivatives(poses[:, :3])[pb.pose]
+    d_rot_pose = GRc @ np.einsum("njab,nb->naj", dRp, X)
+    Jp = np.concatenate([d_rot_pose, GRc], axis=2)
+    Jq = GRc @ Rp
+    return Jc, Jp, Jq
+
+
+def jacobian(pb: Problem, cams, poses, points, lay: Layout) -> sp.csr_matrix:
+    """Sparse Jacobian (2N × n_params, rows x0, y0, x1, ...) of the projections wrt the free parameters.
+
+    Every row holds its camera's free parameters, its pose's six (none for
+    the datum pose 0) and its corner's three, in increasing column order, so
+    the CSR arrays are laid out directly from the per-observation blocks.
+    """
+    Jc, Jp, Jq = jacobian_blocks(pb, cams, poses, points, lay.free_cam)
+    N, nc = len(pb.uv), Jc.shape[2]
+    pose_slot = np.cumsum(lay.free_pose) - 1
+    cols = np.concatenate([
+        lay.cam_cols[pb.cam][:, lay.free_cam],
+        lay.base_pose + 6 * pose_slot[pb.pose][:, None] + np.arange(6),
+        lay.base_point + 3 * pb.point[:, None] + np.arange(3)], axis=1)  # (N, nc + 9)
+    keep = np.ones((N, nc + 9), dtype=bool)
+    keep[:, nc:nc + 6] = lay.free_pose[pb.pose][:, None]
+    vals = np.concatenate([Jc, Jp, Jq], axis=2)  # (N, 2, nc + 9)
+    keep2 = np.broadcast_to(keep[:, None, :], vals.shape)
+    indptr = np.concatenate([[0], np.cumsum(keep2.sum(axis=2).ravel())])
+    return sp.csr_matrix((vals[keep2], np.broadcast_to(cols[:, None, :], vals.shape)[keep2], indptr),
+                         shape=(2 * N, lay.n_params))
+
+
+@dataclass
+class NormalEquations:
+    """``N x = b`` split for the Schur complement: N = [[A, B], [Bᵀ, D]].
+
+    A (n_a × n_a) couples the cameras and poses; B (n_a × 3Q) couples them
+    with the corners; D (Q, 3, 3) is block diagonal, because an observation
+    sees one corner and a corner's survey tie concerns it alone. A and B are
+    kept dense: A is small (14 unknowns per camera, 6 per pose: about 300 for
+    a 20-camera rig), and B is nearly full, because over the test-field poses
+    every camera and every pose sees most corners (a sparse product B D⁻¹ Bᵀ
+    was slower than the dense one on the tiny preset).
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    D: np.ndarray
+    b: np.ndarray
+
+
+def normal_equations(J: sp.csr_matrix, w_obs: np.ndarray, r: np.ndarray, n_a: int, w_pt: float,
+                     r_pt: np.ndarray) -> NormalEquations:
+    """Weighted normal equations of the observations and the corners' survey ties.
+
+    ``J`` is the sparse Jacobian (:func:`jacobian`), ``w_obs`` the weight of
+    each of its rows (1/px²), ``r`` the observations' residuals (px, observed
+    − computed), ``r_pt`` the survey minus the current corner coordinates
+    (mm, weight ``w_pt`` in 1/mm²). ``n_a`` is the number of camera and pose
+    unknowns (the corners' come after them). The full normal matrix is only
+    ever formed sparse.
+    """
+    Jw = sp.csr_matrix(J.multiply(w_obs[:, None]))
+    Nmat = (J.T @ Jw).tocsr()
+    b = Jw.T @ r
+    A = Nmat[:n_a, :n_a].toarray()
+    B = Nmat[:n_a, n_a:].toarray()
+    Dd = Nmat[n_a:, n_a:].tocoo()
+    q = (Nmat.shape[0] - n_a) // 3
+    D = np.zeros((q, 3, 3))
+    np.add.at(D, (Dd.row // 3, Dd.row % 3, Dd.col % 3), Dd.data)  # rows and columns of one corner: one block
+    D[:, np.arange(3), np.arange(3)] += w_pt
+    b[n_a:] += w_pt * r_pt
+    return NormalEquations(A, B, D, b)
+
+
+def _reduce(ne: NormalEquations, lam: float):
+    """Damped Schur complement on the cameras and poses: ``(S, B D⁻¹, D⁻¹)``.
+
+    Levenberg–Marquardt damping scales the diagonal: ``N + lam diag(N)``.
+    """
+    A, D = ne.A, ne.D
+    if lam:
+        A = A + lam * np.diag(np.maximum(np.diag(A), 1e-12))
+        D = D.copy()
+        i3 = np.arange(3)
+        D[:, i3, i3] += lam * np.maximum(D[:, i3, i3], 1e-12)
+    Dinv = np.linalg.inv(D)
+    n_a, q = len(A), len(D)
+    BD = np.einsum("aqi,qij->aqj", ne.B.reshape(n_a, q, 3), Dinv).reshape(n_a, 3 * q)
+    return A - BD @ ne.B.T, BD, Dinv
+
+
+def solve_normal(ne: NormalEquations, lam: float) -> np.ndarray:
+    """The damped step: corners eliminated first (3×3 blocks), the reduced camera/pose system solved dense.
+
+    Raises ``numpy.linalg.LinAlgError`` when the system is singular.
+    """
+    S, BD, Dinv = _reduce(ne, lam)
+    n_a = len(S)
+    xa = np.linalg.solve(S, ne.b[:n_a] - BD @ ne.b[n_a:])
+    xd = np.einsum("qij,qj->qi", Dinv, (ne.b[n_a:] - ne.B.T @ xa).reshape(-1, 3)).ravel()
+    return np.concatenate([xa, xd])
+
+
+def inverse_normal(ne: NormalEquations):
+    """Cofactor matrix of the cameras and poses (n_a × n_a), and the diagonal of the corners' part (3Q,)."""
+    S, BD, Dinv = _reduce(ne, 0.0)
+    try:
+        Qa = np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        Qa = np.linalg.pinv(S)
+    # diag of Q_dd = D⁻¹ + (D⁻¹Bᵀ) Qa (B D⁻¹)
+    extra = np.einsum("ak,ak->k", Qa @ BD, BD)
+    return Qa, np.einsum("qii->qi", Dinv).ravel() + extra
+
+
+def _cost(pb, w_obs, w_pt, survey, cams, poses, points):
+    r = (pb.uv - project_observations(cams, poses, points, pb.cam, pb.pose, pb.point)).ravel()
+    r_pt = (survey - points).ravel()
+    return r, r_pt, float(r @ (w_obs * r) + w_pt * r_pt @ r_pt)
 
 
 def adjust(pb: Problem, max_iterations: int = 30, reject_k: float = 4.0, robust_rounds: int = 4,
-           correlation_warn: float = 0.95) -> Solution:
+           correlation_warn: float = 0.95, max_damping_tries: int = 12) -> Solution:
     """Solve the bundle adjustment; see the module docstring.
 
     Parameters
@@ -194,60 +336,78 @@ def adjust(pb: Problem, max_iterations: int = 30, reject_k: float = 4.0, robust_
         Observations whose standardized residual exceeds ``reject_k`` are
         removed (one corner at a time: the x and y of a corner go together),
         then the adjustment is repeated, ``robust_rounds`` times at most.
+    max_damping_tries : int
+        Levenberg–Marquardt: damped steps tried per iteration (λ × 10 each)
+        before the iteration gives up; 12 span λ over 12 decades, from the
+        smallest it reaches (1e-9) to steepest descent.
+
+    ``Solution.converged`` and ``Solution.reason`` tell how the last round ended:
+    the cost or the step fell below tolerance (converged), or the iteration
+    limit, a singular system or no damping that lowers the cost (not converged;
+    the best parameters reached are returned).
     """
     cams, poses, points = pb.cams.astype(float).copy(), pb.poses.astype(float).copy(), pb.points.astype(float).copy()
     survey = pb.points.astype(float)
     free_cam = np.array([n not in pb.fixed_iop for n in CAM_NAMES])
     free_pose = np.arange(len(poses)) > 0
+    lay = layout(len(cams), len(poses), len(points), free_cam, free_pose)
+    w_pt = 1.0 / pb.sigma_mm ** 2
     inlier = np.ones(len(pb.uv), dtype=bool)
     history = []
     it_total = 0
-    converged = False
+    converged, reason = False, "no iteration"
     for round_ in range(robust_rounds + 1):
         w_obs = np.repeat(pb.weight * inlier, 2) / pb.sigma_px ** 2
         lam = 1e-3
+        converged, reason = False, f"iteration limit ({max_iterations}) reached"
         for it in range(max_iterations):
             it_total += 1
-            pred = project_observations(cams, poses, points, pb.cam, pb.pose, pb.point)
-            r = (pb.uv - pred).ravel()
-            J, cam_cols, base_pose, base_point, n_params = _jacobian(pb, cams, poses, points, free_cam, free_pose)
-            r_pt = (survey - points).ravel()
-            w_pt = 1.0 / pb.sigma_mm ** 2
-            JW = J.T.multiply(w_obs).tocsr()
-            Nmat = (JW @ J).toarray()
-            b = JW @ r
-            idx_pt = base_point + np.arange(points.size)
-            Nmat[idx_pt, idx_pt] += w_pt
-            b[idx_pt] += w_pt * r_pt
-            cost = float(r @ (w_obs * r) + w_pt * r_pt @ r_pt)
-            # Levenberg–Marquardt: damp the diagonal, accept steps that lower the cost
-            diag = np.diag(Nmat).copy()
-            while True:
+            r, r_pt, cost = _cost(pb, w_obs, w_pt, survey, cams, poses, points)
+            J = jacobian(pb, cams, poses, points, lay)
+            ne = normal_equations(J, w_obs, r, lay.base_point, w_pt, r_pt)
+            accepted, best_rise, singular = False, np.inf, 0
+            for _ in range(max_damping_tries):
                 try:
-                    dx = _solve_schur(Nmat + lam * np.diag(np.maximum(diag, 1e-12)), b, base_point)
+                    dx = solve_normal(ne, lam)
                 except np.linalg.LinAlgError:
+                    dx = None
+                if dx is None or not np.all(np.isfinite(dx)):
+                    singular += 1
                     lam *= 10
                     continue
-                new_cams, new_poses, new_points = _apply(dx, cams, poses, points, cam_cols, free_pose, base_pose, base_point)
-                pred_new = project_observations(new_cams, new_poses, new_points, pb.cam, pb.pose, pb.point)
-                r_new = (pb.uv - pred_new).ravel()
-                r_pt_new = (survey - new_points).ravel()
-                cost_new = float(r_new @ (w_obs * r_new) + w_pt * r_pt_new @ r_pt_new)
-                if cost_new <= cost or lam > 1e8:
+                new = _apply(dx, cams, poses, points, lay)
+                _, _, cost_new = _cost(pb, w_obs, w_pt, survey, *new)
+                if cost_new <= cost:
+                    accepted = True
                     break
+                best_rise = min(best_rise, cost_new - cost)
                 lam *= 10
-            if cost_new <= cost:
-                cams, poses, points = new_cams, new_poses, new_points
-                lam = max(lam / 10, 1e-9)
+            tol = 1e-10 * max(cost, 1.0)
+            if not accepted:
+                history.append({"round": round_, "cost": cost})
+                if best_rise < tol:
+                    # every damped step changed the cost by less than the tolerance: at the minimum
+                    converged, reason = True, "at the minimum: no step changes the cost beyond tolerance"
+                elif singular == max_damping_tries:
+                    reason = f"singular or non-finite normal equations in all {max_damping_tries} damping tries"
+                else:
+                    reason = (f"no step lowered the cost in {max_damping_tries} damping tries "
+                              f"(lambda up to {lam / 10:.0e})")
+                break
+            cams, poses, points = new
+            lam = max(lam / 10, 1e-9)
             history.append({"round": round_, "cost": cost_new})
-            step_px = np.abs(dx[:base_pose]).max() if base_pose else 0.0
-            if cost - cost_new < 1e-10 * max(cost, 1.0) or (step_px < 1e-7 and np.abs(dx).max() < 1e-6):
-                converged = True
+            step_px = np.abs(dx[:lay.base_pose]).max() if lay.base_pose else 0.0
+            if cost - cost_new < tol:
+                converged, reason = True, "cost change below tolerance"
+                break
+            if step_px < 1e-7 and np.abs(dx).max() < 1e-6:
+                converged, reason = True, "step below tolerance"
                 break
         # a posteriori variance factor and rejection of blunders
         pred = project_observations(cams, poses, points, pb.cam, pb.pose, pb.point)
         res = pb.uv - pred
-        dof = 2 * inlier.sum() - (n_params - points.size)  # target pseudo-observations balance their unknowns
+        dof = 2 * inlier.sum() - (lay.n_params - points.size)  # target pseudo-observations balance their unknowns
         sigma0 = np.sqrt(max((np.sum(pb.weight[inlier, None] * res[inlier] ** 2) / pb.sigma_px ** 2
                               + np.sum((survey - points) ** 2) / pb.sigma_mm ** 2) / max(dof, 1), 1e-12))
         std_res = np.linalg.norm(res, axis=1) * np.sqrt(pb.weight) / (pb.sigma_px * sigma0 * np.sqrt(2))
@@ -259,14 +419,13 @@ def adjust(pb: Problem, max_iterations: int = 30, reject_k: float = 4.0, robust_
         inlier &= ~(bad & (std_res > max(reject_k, 0.5 * worst)))
 
     # precision from the normal matrix at the solution
-    J, cam_cols, base_pose, base_point, n_params = _jacobian(pb, cams, poses, points, free_cam, free_pose)
     w_obs = np.repeat(pb.weight * inlier, 2) / pb.sigma_px ** 2
-    Nmat = (J.T.multiply(w_obs).tocsr() @ J).toarray()
-    idx_pt = base_point + np.arange(points.size)
-    Nmat[idx_pt, idx_pt] += 1.0 / pb.sigma_mm ** 2
-    Q, point_diag = _inverse_schur(Nmat, base_point)
+    J = jacobian(pb, cams, poses, points, lay)
+    ne = normal_equations(J, w_obs, np.zeros(J.shape[0]), lay.base_point, w_pt, np.zeros(points.size))
+    Q, point_diag = inverse_normal(ne)
     cov_scale = sigma0 ** 2
     sd = np.sqrt(np.clip(np.concatenate([np.diag(Q), point_diag]), 0, None) * cov_scale)
+    cam_cols = lay.cam_cols
     cam_sigma = np.zeros_like(cams)
     valid = cam_cols >= 0
     cam_sigma[valid] = sd[cam_cols[valid]]
@@ -279,70 +438,32 @@ def adjust(pb: Problem, max_iterations: int = 30, reject_k: float = 4.0, robust_
     cam_cov = np.stack([cams_cov[c * N_CAM:(c + 1) * N_CAM, c * N_CAM:(c + 1) * N_CAM] for c in range(len(cams))])
     pose_sigma = np.zeros_like(poses)
     k = np.flatnonzero(free_pose)
-    for i, p in enumerate(k):
-        pose_sigma[p] = sd[base_pose + 6 * i: base_pose + 6 * i + 6]
-    point_sigma = sd[base_point:].reshape(-1, 3)
+    pose_sigma[k] = sd[lay.base_pose: lay.base_point].reshape(-1, 6)
+    point_sigma = sd[lay.base_point:].reshape(-1, 3)
     correlations = []
+    iop = np.array([n in IOP_NAMES for n in CAM_NAMES])
     for c in range(len(cams)):
         ids = cam_cols[c][valid[c]]
         names = [n for n, v in zip(CAM_NAMES, valid[c]) if v]
         sub = Q[np.ix_(ids, ids)]
         d = np.sqrt(np.diag(sub))
         rho = sub / np.outer(d, d)
-        for a in range(len(ids)):
-            for b in range(a + 1, len(ids)):
-                iop_eop = (names[a] in IOP_NAMES) != (names[b] in IOP_NAMES)
-                if iop_eop and abs(rho[a, b]) > correlation_warn:
-                    correlations.append((c, names[a], names[b], float(rho[a, b])))
+        is_iop = iop[valid[c]]
+        a_idx, b_idx = np.triu_indices(len(ids), 1)
+        hit = (is_iop[a_idx] != is_iop[b_idx]) & (np.abs(rho[a_idx, b_idx]) > correlation_warn)
+        correlations += [(c, names[a], names[b], float(rho[a, b])) for a, b in zip(a_idx[hit], b_idx[hit])]
     return Solution(cams, poses, points, pb.uv - pred, inlier, float(sigma0), cam_sigma, pose_sigma, point_sigma,
-                    correlations, it_total, converged, history, cam_cov, cams_cov)
+                    correlations, it_total, converged, history, cam_cov, cams_cov, reason)
 
 
-def _apply(dx, cams, poses, points, cam_cols, free_pose, base_pose, base_point):
+def _apply(dx, cams, poses, points, lay: Layout):
+    """Parameters after the step ``dx`` (new arrays)."""
     cams = cams.copy()
-    valid = cam_cols >= 0
-    cams[valid] += dx[cam_cols[valid]]
+    valid = lay.cam_cols >= 0
+    cams[valid] += dx[lay.cam_cols[valid]]
     poses = poses.copy()
-    k = np.flatnonzero(free_pose)
+    k = np.flatnonzero(lay.free_pose)
     if len(k):
-        poses[k] += dx[base_pose: base_pose + 6 * len(k)].reshape(-1, 6)
-    points = points + dx[base_point:].reshape(-1, 3)
+        poses[k] += dx[lay.base_pose: lay.base_point].reshape(-1, 6)
+    points = points + dx[lay.base_point:].reshape(-1, 3)
     return cams, poses, points
-
-
-def _blocks(Nmat, n_a):
-    """Split the normal matrix: camera/pose block A, coupling B, 3x3 point blocks D."""
-    A = Nmat[:n_a, :n_a]
-    B = Nmat[:n_a, n_a:]
-    q = (Nmat.shape[0] - n_a) // 3
-    idx = n_a + 3 * np.arange(q)[:, None] + np.arange(3)
-    D = Nmat[idx[:, :, None], idx[:, None, :]]  # (q, 3, 3)
-    return A, B, D, q
-
-
-def _solve_schur(Nmat, b, n_a):
-    """Solve the normal equations by eliminating the points (3x3 blocks) first."""
-    A, B, D, q = _blocks(Nmat, n_a)
-    Dinv = np.linalg.inv(D)
-    BD = np.einsum("aqi,qij->aqj", B.reshape(n_a, q, 3), Dinv).reshape(n_a, 3 * q)
-    S = A - BD @ B.T
-    rhs = b[:n_a] - BD @ b[n_a:]
-    xa = np.linalg.solve(S, rhs)
-    xd = np.einsum("qij,qj->qi", Dinv, (b[n_a:] - B.T @ xa).reshape(q, 3)).ravel()
-    return np.concatenate([xa, xd])
-
-
-def _inverse_schur(Nmat, n_a):
-    """Cofactor matrix of the cameras and poses, and the diagonal of the points' part."""
-    A, B, D, q = _blocks(Nmat, n_a)
-    Dinv = np.linalg.inv(D)
-    BD = np.einsum("aqi,qij->aqj", B.reshape(n_a, q, 3), Dinv).reshape(n_a, 3 * q)
-    S = A - BD @ B.T
-    try:
-        Qa = np.linalg.inv(S)
-    except np.linalg.LinAlgError:
-        Qa = np.linalg.pinv(S)
-    # diag of Q_dd = D^-1 + (D^-1 B^T) Qa (B D^-1)
-    extra = np.einsum("ak,ab,bk->k", BD, Qa, BD)
-    point_diag = np.einsum("qii->qi", Dinv).ravel() + extra
-    return Qa, point_diag

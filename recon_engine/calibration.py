@@ -68,6 +68,8 @@ class CalibrationReport:
     observations: int = 0
     inlier_fraction: float = 1.0
     iterations: int = 0
+    converged: bool = True  # the last adjustment pass converged
+    convergence: str = ""  # how it ended (bundle.Solution.reason)
     targets: list = field(default_factory=list, repr=False)  # the measurements adjusted (not serialized)
 
     def drop(self, camera, reason, n=1):
@@ -326,6 +328,8 @@ def calibrate(captures: list[Capture], rig: Rig, testfield: TestField, cfg: Cali
         progress(f"bundle adjustment, pass {pass_ + 1}")
         pb, cam_ids, pose_ids, marker_ids = _problem(targets, cameras, poses, testfield, cfg)
         sol = bundle.adjust(pb, reject_k=cfg.reject_k, correlation_warn=cfg.correlation_warn)
+        if not sol.converged:
+            report.warnings.append(f"bundle adjustment pass {pass_ + 1} did not converge: {sol.reason}")
         cameras = _cameras_from(sol, cam_ids, rig)
         poses = {p: (bundle.rodrigues(sol.poses[i, :3]), sol.poses[i, 3:]) for i, p in enumerate(pose_ids)}
         if pass_ == 0:
@@ -345,6 +349,7 @@ def calibrate(captures: list[Capture], rig: Rig, testfield: TestField, cfg: Cali
     report.observations = int(len(pb.uv))
     report.inlier_fraction = float(sol.inlier.mean())
     report.iterations = sol.iterations
+    report.converged, report.convergence = bool(sol.converged), sol.reason
     report.targets = targets
     report.drop("all", "blunder", int((~sol.inlier).sum() // 4))
     by_cam = {}

@@ -143,7 +143,7 @@ def distort(xy, dist) -> np.ndarray:
     return np.stack([xd, yd], axis=-1)
 
 
-def _distort_jacobian(x, y, dist):
+def distort_jacobian(x, y, dist):
     """Partial derivatives of the distorted coordinates wrt the ideal ones."""
     k1, k2, p1, p2, k3 = dist
     r2 = x * x + y * y
@@ -188,7 +188,7 @@ def undistort(xy_distorted, dist, iterations: int = 30, tol: float = 1e-14, init
     tx, ty = target[..., 0], target[..., 1]
     for _ in range(iterations):
         xd = distort(np.stack([x, y], axis=-1), dist)
-        a, b, c, d = _distort_jacobian(x, y, dist)
+        a, b, c, d = distort_jacobian(x, y, dist)
         rx, ry = xd[..., 0] - tx, xd[..., 1] - ty
         det = a * d - b * c
         dx = (d * rx - b * ry) / det

@@ -18,7 +18,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .camera import Camera, _distort_jacobian, distort, pixel_to_ray
+from .camera import Camera, distort_jacobian, distort, pixel_to_ray
 from .parallel import cores
 
 
@@ -54,7 +54,7 @@ def _project_with_jacobian(cam: Camera, X: np.ndarray):
     x, y = xc[:, 0] / z, xc[:, 1] / z
     xyd = distort(np.column_stack([x, y]), cam.dist)
     uv = np.column_stack([cam.fx * xyd[:, 0] + cam.cx, cam.fy * xyd[:, 1] + cam.cy])
-    a, b, c, d = _distort_jacobian(x, y, np.asarray(cam.dist, dtype=float))
+    a, b, c, d = distort_jacobian(x, y, np.asarray(cam.dist, dtype=float))
     # d(x, y)/d(camera-frame point), then through the rotation to the world frame
     P = np.zeros((len(z), 2, 3))
     P[:, 0, 0] = 1 / z

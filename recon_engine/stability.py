@@ -43,7 +43,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.optimize import least_squares
 
-from .bundle import _CAM_STEP, CAM_NAMES, rodrigues, rotation_to_rvec
+from .bundle import CAM_STEP, CAM_NAMES, rodrigues, rotation_to_rvec
 from .camera import Camera, distort, pixel_to_normalized, project
 
 CRITERIA = ("zrot", "rot", "spr", "arm")
@@ -216,10 +216,10 @@ def _jacobians(tm, grid, pa, pb, X_a, motion, distance_mm):
     Ja = np.column_stack([
         (_offsets(tm, grid, _ray_points(tm, grid, pa + h, distance_mm), pb, motion)
          - _offsets(tm, grid, _ray_points(tm, grid, pa - h, distance_mm), pb, motion)) / (2 * h[k])
-        for k, h in ((k, eye15[k] * _CAM_STEP[k]) for k in range(15))])
+        for k, h in ((k, eye15[k] * CAM_STEP[k]) for k in range(15))])
     Jb = np.column_stack([
         (_offsets(tm, grid, X_a, pb + h, motion) - _offsets(tm, grid, X_a, pb - h, motion)) / (2 * h[k])
-        for k, h in ((k, eye15[k] * _CAM_STEP[k]) for k in range(15))])
+        for k, h in ((k, eye15[k] * CAM_STEP[k]) for k in range(15))])
     return Ja, Jb, _motion_jacobian(tm, grid, X_a, pb, motion)
 
 
