@@ -38,6 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from recon_engine.formats import read_calibration, read_capture, read_rig  # noqa: E402
+from recon_engine.parallel import reuse_freed_images  # noqa: E402
 from recon_engine.reconstruction import TorsoConfig, reconstruct_torso, register_arms  # noqa: E402
 from recon_engine.registration import ICPatchConfig, Transform, pair_fit  # noqa: E402
 from recon_engine.surface import in_patches  # noqa: E402
@@ -207,6 +208,7 @@ def main() -> int:
     ap.add_argument("--keep-surfaces", action="store_true",
                     help="pickle each capture's arm surfaces and reports to bench-out/surfaces-<capture>.pkl")
     args = ap.parse_args()
+    reuse_freed_images()  # as the command line does: the figures are the CLI's
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                                 cwd=Path(__file__).parent).stdout.strip()

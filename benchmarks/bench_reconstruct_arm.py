@@ -41,6 +41,7 @@ from recon_engine.epipolar import rectify_pair, rig_centre, subject_depth_bounds
 from recon_engine.features import region_of_interest  # noqa: E402
 from recon_engine.formats import load_image, read_calibration, read_capture, read_rig  # noqa: E402
 from recon_engine.multiview import IntersectionConfig, intersect  # noqa: E402
+from recon_engine.parallel import reuse_freed_images  # noqa: E402
 from recon_engine.reconstruction import arm_cameras, reconstruct_arm  # noqa: E402
 
 from bench_simulate import machine  # noqa: E402
@@ -148,6 +149,7 @@ def main() -> int:
     ap.add_argument("--no-pycolmap", action="store_true")
     ap.add_argument("--no-sgbm", action="store_true", help="ours (and pycolmap) only")
     args = ap.parse_args()
+    reuse_freed_images()  # as the command line does: the figures are the CLI's
     S = Path(args.scenario)
     rig = read_rig(S / "rig.json")
     truth_cal = read_calibration(S / "truth" / args.capture / "calibration.json")

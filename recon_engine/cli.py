@@ -270,10 +270,12 @@ def _torso_inputs(args):
 
 
 def _cmd_reconstruct_arm(args) -> int:
+    from . import parallel
     from .formats import write_json
     from .reconstruction import reconstruct_arm
     from .surface import write_ply
 
+    parallel.reuse_freed_images()  # this process is ours: full-size images are freed and allocated again
     rig, calibration, capture = _torso_inputs(args)
     surface, report = reconstruct_arm(capture, rig, calibration, args.arm, progress=lambda m: print(f"  {m}", flush=True))
     out = Path(args.out)
@@ -291,9 +293,11 @@ def _cmd_reconstruct_arm(args) -> int:
 
 
 def _cmd_reconstruct(args) -> int:
+    from . import parallel
     from .reconstruction import reconstruct_torso
     from .results import write_torso
 
+    parallel.reuse_freed_images()  # this process is ours: full-size images are freed and allocated again
     rig, calibration, capture = _torso_inputs(args)
     out = Path(args.out)
     if out.exists() and any(out.iterdir()) and not args.force:

@@ -23,6 +23,11 @@ def reuse_freed_images(mmap_threshold: int = 512 << 20, trim_threshold: int = 1 
     of 15 s then. With blocks up to ``mmap_threshold`` bytes on the heap,
     and up to ``trim_threshold`` bytes of free heap kept, they are reused:
     about 1 s less per arm then, the process's peak memory 0.1-0.2 GB higher.
+
+    It changes the whole process and cannot be undone (glibc has no getter
+    for these settings), so library code never calls it for its caller: the
+    command line's reconstruction commands and the benchmarks opt in at
+    their entry point, and the engine's own arm processes at their start.
     """
     import ctypes
     import ctypes.util

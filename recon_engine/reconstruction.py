@@ -103,7 +103,6 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     """
     cfg = cfg or ReconstructionConfig()
     t0 = time.perf_counter()
-    reuse_freed_images()  # the stages allocate and free many full-size images (see there)
     ids = arm_cameras(rig, arm_id)
     unusable = {}
     images, cams, used = [], [], []
@@ -310,6 +309,9 @@ _PROGRESS = None  # in an arm worker process: the queue its progress messages go
 def _init_arm_worker(messages):
     global _PROGRESS
     _PROGRESS = messages
+    # these processes are the engine's own, started and ended by _arms_in_processes: tuning their allocator
+    # changes no caller's process (unlike reconstruct_arm in the caller's process, which must leave it alone)
+    reuse_freed_images()
 
 
 def _arm_in_worker(capture, rig, calibration, arm, cfg):
