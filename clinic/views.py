@@ -230,6 +230,10 @@ def _verdict(clinic, earlier, later, title, mdc=None, noise=None, sides_agree=No
             out["within"].append(item)
         else:
             out["unjudged"].append(item)
+    # a verdict may rest on an MDC the clinic did not measure itself (the scanner's own, while the clinic has
+    # too few repeat pairs): say so rather than "no verdict possible"
+    out["judged"] = bool(out["beyond"] or out["within"])
+    out["scanner_mdc"] = any((m or {}).get("source") == "scanner" for m in mdc.values())
     out["unjudged"].sort(key=lambda x: -x["size"] if x["unit"] == "mm" else -3 * x["size"])
     for key, name in labels.GROWTH_FIGURES[1:]:
         ch = ((growth or {}).get("change") or {}).get(key)
