@@ -109,6 +109,24 @@ def mdc_interval(mdc: float, n: int) -> list:
     return [float(mdc * math.sqrt(n / chi2.ppf(0.975, n))), float(mdc * math.sqrt(n / chi2.ppf(0.025, n)))]
 
 
+def scanner_mdc(path=None) -> dict:
+    """The scanner's own repeatability: the MDC of every index from same-day re-scans of simulated bodies
+    (``benchmarks/bench_bodies.py --write-mdc`` writes ``analysis/scanner_mdc.json``). A clinic uses it, so
+    labelled, until it has :data:`MIN_REPEAT_PAIRS` repeat pairs of its own. ``{}`` when the file is missing.
+
+    Each entry is ``{"mdc", "sem", "n", "ci95", "source"}``.
+    """
+    import json
+    from pathlib import Path
+
+    path = Path(path) if path else Path(__file__).with_name("scanner_mdc.json")
+    if not path.exists():
+        return {}
+    data = json.loads(path.read_text(encoding="utf-8"))
+    return {k: {**v, "source": "scanner"} for k, v in (data.get("mdc") or {}).items()
+            if (v.get("n") or 0) >= MIN_REPEAT_PAIRS}
+
+
 def usable_mdc(mdc: dict, min_pairs: int = MIN_REPEAT_PAIRS) -> dict:
     """The MDCs that rest on at least ``min_pairs`` repeat pairs (the others flag nothing)."""
     return {k: v for k, v in mdc.items() if (v.get("n") or 0) >= min_pairs}

@@ -56,16 +56,21 @@ def clinic_mdc(clinic, usable_only: bool = True) -> dict:
     """Minimal detectable change of every figure from the clinic's repeat pairs: figure -> {"mdc", "sem", "n", "ci95"}.
 
     ``usable_only``: only the figures whose MDC rests on enough repeat pairs
-    (:data:`analysis.repeatability.MIN_REPEAT_PAIRS`) to flag anything; one pair never flags.
+    (:data:`analysis.repeatability.MIN_REPEAT_PAIRS`) to flag anything; one pair never flags. Until the
+    clinic's own pairs are enough, an index takes the scanner's repeatability measured on simulated
+    re-scans (:func:`analysis.repeatability.scanner_mdc`, ``"source": "scanner"``).
     """
-    from analysis.repeatability import mdc_from_comparisons, mdc_from_index_pairs, usable_mdc
+    from analysis.repeatability import mdc_from_comparisons, mdc_from_index_pairs, scanner_mdc, usable_mdc
 
     pairs = [c for c in Comparison.objects.filter(later__session__rig__clinic=clinic)
              .select_related("earlier__session", "later__session") if c.is_repeat]
     mdc = mdc_from_comparisons([c.report for c in pairs])
     mdc.update(mdc_from_index_pairs([(c.earlier.indices, c.later.indices) for c in pairs
                                      if c.earlier.indices and c.later.indices]))
-    return usable_mdc(mdc) if usable_only else mdc
+    if not usable_only:
+        return mdc
+    own = {k: {**v, "source": "clinic"} for k, v in usable_mdc(mdc).items()}
+    return {**scanner_mdc(), **own}
 
 
 def repeat_pairs(clinic) -> int:

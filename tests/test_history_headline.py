@@ -12,7 +12,12 @@ def _headline(html):
 
 
 @pytest.mark.django_db
-def test_it_states_the_changes_and_says_no_verdict_is_possible_yet(client, charlie, patient_with_two_visits):  # noqa: F811
+def test_it_states_the_changes_and_says_no_verdict_is_possible_yet(client, charlie, patient_with_two_visits,  # noqa: F811
+                                                                    monkeypatch):
+    import analysis.repeatability
+
+    # no repeatability of the scanner's either (an installation without analysis/scanner_mdc.json)
+    monkeypatch.setattr(analysis.repeatability, "scanner_mdc", lambda path=None: {})
     client.force_login(charlie)
     html = client.get(f"/patients/{patient_with_two_visits.pk}/").content.decode()
     head = _headline(html)
@@ -47,3 +52,14 @@ def test_it_says_which_changed_beyond_noise_with_enough_repeat_pairs(client, cha
     assert "Back asymmetry (mirror)" in within.split("</p>")[0]
     # growth is never a change beyond noise, however small the noise
     assert "Trunk length" not in beyond
+
+
+@pytest.mark.django_db
+def test_until_the_clinic_has_its_own_re_scans_the_verdicts_rest_on_the_scanners_repeatability(
+        client, charlie, patient_with_two_visits):  # noqa: F811
+    from analysis.repeatability import scanner_mdc
+
+    assert scanner_mdc(), "analysis/scanner_mdc.json (benchmarks/bench_bodies.py --write-mdc) is shipped"
+    client.force_login(charlie)
+    head = _headline(client.get(f"/patients/{patient_with_two_visits.pk}/").content.decode())
+    assert "the scanner's own repeatability" in head and "No noise verdict is possible yet" not in head

@@ -29,3 +29,17 @@ def test_it_flags_with_enough_repeat_pairs_and_gives_the_interval():
     assert ch["surface_rotation_deg.max"]["exceeds_mdc"] is True
     ch = index_changes({"surface_rotation_deg": {"max": 10.0}}, {"surface_rotation_deg": {"max": 10.5}}, usable)
     assert ch["surface_rotation_deg.max"]["exceeds_mdc"] is False
+
+
+def test_the_scanners_repeatability_is_read_labelled_and_needs_enough_pairs(tmp_path):
+    import json
+
+    from analysis.repeatability import scanner_mdc
+
+    mdc = mdc_from_index_pairs(_pairs(MIN_REPEAT_PAIRS))
+    mdc["hump_mm"] = {"mdc": 1.0, "sem": 0.4, "n": 3}  # too few pairs: never used
+    path = tmp_path / "scanner_mdc.json"
+    path.write_text(json.dumps({"source": "test", "pairs": MIN_REPEAT_PAIRS, "mdc": mdc}))
+    got = scanner_mdc(path)
+    assert set(got) == {"surface_rotation_deg.max"} and got["surface_rotation_deg.max"]["source"] == "scanner"
+    assert scanner_mdc(tmp_path / "missing.json") == {}

@@ -142,8 +142,8 @@ class Command(BaseCommand):
                  "   workflow, not the scanner's accuracy; see docs/analysis.md for the paper-scale validation)")
         pairs = repeat_pairs(clinic)
         if pairs < MIN_REPEAT_PAIRS:
-            self.say(f"  noise verdicts need {MIN_REPEAT_PAIRS} same-visit re-scans; this clinic has {pairs}: "
-                     "nothing is flagged yet")
+            self.say(f"  this clinic has {pairs} of the {MIN_REPEAT_PAIRS} same-visit re-scans its own noise verdicts "
+                     "need; until then they rest on the scanner's repeatability measured on simulated re-scans")
         for comp in Comparison.objects.filter(later__session__visit__patient_id=patient["id"]).order_by("created"):
             r = comp.report
             kind = "same-visit re-scan (repeatability)" if comp.is_repeat else "follow-up against baseline"
