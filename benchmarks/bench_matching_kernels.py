@@ -107,7 +107,7 @@ def main() -> int:
     args = ap.parse_args()
     left, right, xy, true_right, start = synthetic_pair()
     n = len(xy)
-    rows = matching._along_rows(xy)
+    rows = matching.along_rows(xy)
     modules = {"kernels": matching}
     if args.reference:
         modules[f"numpy ({args.reference})"] = reference_module(args.reference)

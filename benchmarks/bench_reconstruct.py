@@ -60,7 +60,7 @@ def displacement_errors(T: dict, D: dict, at: np.ndarray) -> dict:
     return out
 
 
-def _pcd(surface):
+def point_cloud(surface):
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(surface.points))
     pcd.normals = o3d.utility.Vector3dVector(surface.normals)
     return pcd
@@ -82,7 +82,7 @@ def _from_matrix(M):
 
 def open3d_pairwise(surfaces, order):
     """Open3D point-to-plane ICP chained from the reference arm."""
-    pc = {a: _pcd(surfaces[a]) for a in order}
+    pc = {a: point_cloud(surfaces[a]) for a in order}
     M = {order[0]: np.eye(4)}
     for prev, a in zip(order[:-1], order[1:]):
         M[a] = M[prev] @ _icp(pc[a], pc[prev], np.eye(4))
@@ -92,7 +92,7 @@ def open3d_pairwise(surfaces, order):
 def open3d_multiway(surfaces, order):
     """Open3D's multiway registration: pose graph of neighbouring ICP edges, the loop closed, optimized."""
     reg = o3d.pipelines.registration
-    pc = {a: _pcd(surfaces[a]) for a in order}
+    pc = {a: point_cloud(surfaces[a]) for a in order}
     graph = reg.PoseGraph()
     odo = np.eye(4)
     graph.nodes.append(reg.PoseGraphNode(odo))

@@ -33,7 +33,7 @@ from recon_engine.formats import read_calibration, read_rig  # noqa: E402
 from recon_engine.reconstruction import TorsoConfig, register_arms  # noqa: E402
 from recon_engine.registration import Transform, choose_patches, icpatch, patch_indices  # noqa: E402
 
-from bench_reconstruct import _pcd, displacement_errors, open3d_multiway, open3d_pairwise  # noqa: E402
+from bench_reconstruct import point_cloud, displacement_errors, open3d_multiway, open3d_pairwise  # noqa: E402
 from bench_reconstruct_arm import Truth  # noqa: E402
 from bench_simulate import machine  # noqa: E402
 
@@ -86,7 +86,7 @@ def icpatch_edges(surfaces, order, cfg):
 def pose_graph(surfaces, order, edges):
     """Open3D's pose graph optimisation (as in ``open3d_multiway``) over the given rigid edges."""
     reg = o3d.pipelines.registration
-    pc = {a: _pcd(surfaces[a]) for a in order}
+    pc = {a: point_cloud(surfaces[a]) for a in order}
     graph = reg.PoseGraph()
     odo = np.eye(4)
     graph.nodes.append(reg.PoseGraphNode(odo))

@@ -226,7 +226,7 @@ def _chunked(fn, n, chunk, threads=1, order=None, **arrays):
     return out
 
 
-def _along_rows(xy: np.ndarray) -> np.ndarray:
+def along_rows(xy: np.ndarray) -> np.ndarray:
     """The points ``xy`` (N, 2) row by row (a stable sort of their whole rows): the compiled kernels then read
     neighbouring points' windows from the cache (Harris features come strongest first, scattered over the image:
     the correlation search 1.4x faster row by row, benchmarks/bench_matching_kernels.py)."""
@@ -240,11 +240,11 @@ def _search(left, right, xy, x_pred, radius, band, window, cfg, scale=1.0, shear
     shear = np.broadcast_to(np.asarray(shear, dtype=float), (n,)).copy()
     return _chunked(lambda **a: ncc_search(left, right, a["xy"], a["x_pred"], radius, band, window, scale=a["scale"],
                                            shear=a["shear"]),
-                    n, cfg.search_chunk, cores(cfg.threads), _along_rows(xy),
+                    n, cfg.search_chunk, cores(cfg.threads), along_rows(xy),
                     xy=xy, x_pred=x_pred, scale=scale, shear=shear)
 
 
-def _seed_disparities(left, right, xy, d_mid, radius, cfg):
+def seed_disparities(left, right, xy, d_mid, radius, cfg):
     """Stage 1: disparities of the seed points ``xy`` from the whole range ``d_mid`` ± ``radius`` (px).
 
     With ``cfg.sparse_level`` > 0 the whole range is searched in the
@@ -280,7 +280,7 @@ def _seed_disparities(left, right, xy, d_mid, radius, cfg):
     if cfg.sparse_level_fallback:
         # where the pyramid loses the pattern (steep skin squeezes it in one view) the full resolution may not
         rest = xy[~ok]
-        seeds_rest, d_rest = _seed_disparities(left, right, rest, d_mid, radius, replace(cfg, sparse_level=0))
+        seeds_rest, d_rest = seed_disparities(left, right, rest, d_mid, radius, replace(cfg, sparse_level=0))
         seeds.append(seeds_rest)
         d.append(d_rest)
     return np.concatenate(seeds), np.concatenate(d)
@@ -355,7 +355,7 @@ def _verify(left, right, xy, r, scale, shear, cfg, max_sigma_px=None, window=Non
         lsm = _chunked(lambda **a: least_squares_refine(left, right, a["xy_left"], a["xy_right"], window=lsm_window,
                                                         initial_scale=a["scale"], initial_shear=a["shear"],
                                                         antialias_px=cfg.lsm_antialias_px),
-                       len(idx), cfg.chunk * 2, cores(cfg.threads), _along_rows(xy[idx]), xy_left=xy[idx],
+                       len(idx), cfg.chunk * 2, cores(cfg.threads), along_rows(xy[idx]), xy_left=xy[idx],
                        xy_right=r["xy"][idx],
                        scale=np.ascontiguousarray(scale[idx]), shear=np.ascontiguousarray(shear[idx]))
         limit = cfg.max_lsm_sigma_px if max_sigma_px is None else max_sigma_px
@@ -392,7 +392,7 @@ def match_points(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity_
     key = cell[:, 1] * (int(cell[:, 0].max()) + 2) + cell[:, 0]
     _, sparse = np.unique(key, return_index=True)
     radius = int(np.ceil((dmax - dmin) / 2)) + 1
-    anchors, d_anchor = _seed_disparities(left, right, xy[sparse], 0.5 * (dmin + dmax), radius, cfg)
+    anchors, d_anchor = seed_disparities(left, right, xy[sparse], 0.5 * (dmin + dmax), radius, cfg)
     if len(anchors) >= 3:
         # drop anchors that disagree with their neighbours (a wrong peak of the repeating pattern)
         k = min(cfg.neighbours + 1, len(anchors))
@@ -491,7 +491,7 @@ def _grow(left, right, xy, reason, out_xy, out_ncc, cfg):
             todo = todo[np.isfinite(d)]
         if len(todo) == 0:
             break
-        nb = _matched_neighbours(start_tree, start, since, xy, todo, cfg)
+        nb = matched_neighbours(start_tree, start, since, xy, todo, cfg)
         enough = np.sum(nb >= 0, axis=1) >= cfg.grow_min_neighbours
         if fresh is not None:
             # a point whose nearest matched neighbours are the last round's set again would be predicted, searched
@@ -526,7 +526,7 @@ def _grow(left, right, xy, reason, out_xy, out_ncc, cfg):
     return reason, out_xy, out_ncc
 
 
-def _matched_neighbours(start_tree, start, since, xy, todo, cfg) -> np.ndarray:
+def matched_neighbours(start_tree, start, since, xy, todo, cfg) -> np.ndarray:
     """The ``cfg.neighbours`` nearest matched points within ``cfg.grow_radius_px`` of each of the points ``todo``:
     (len(todo), k) indices into ``xy``, nearest first, -1 where there are fewer.
 

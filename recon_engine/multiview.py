@@ -18,7 +18,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .camera import Camera, distort_jacobian, distort, pixel_to_ray
+from .camera import Camera, distort, distort_jacobian, pixel_to_ray
 from .parallel import cores
 
 
@@ -47,7 +47,7 @@ def linear_intersection(centres: np.ndarray, directions: np.ndarray, valid: np.n
     return np.linalg.solve(A, b[..., None])[..., 0]
 
 
-def _project_with_jacobian(cam: Camera, X: np.ndarray):
+def project_with_jacobian(cam: Camera, X: np.ndarray):
     """Pixels (N, 2) of world points (mm) and d(pixel)/dX (N, 2, 3), analytic (collinearity with distortion)."""
     xc = (np.asarray(X, dtype=float) - cam.C) @ cam.R.T
     z = xc[:, 2]
@@ -155,7 +155,7 @@ def _adjust(cameras, obs, used, X, iterations):
             sel = used[:, k]
             if not sel.any():
                 continue
-            uv, J = _project_with_jacobian(cam, X[sel])
+            uv, J = project_with_jacobian(cam, X[sel])
             r = obs[sel, k] - uv
             res[sel, k] = r
             N[sel] += np.einsum("nai,naj->nij", J, J)
@@ -172,7 +172,7 @@ def _adjust(cameras, obs, used, X, iterations):
     for k, cam in enumerate(cameras):
         sel = used[:, k]
         if sel.any():
-            uv, J = _project_with_jacobian(cam, X[sel])
+            uv, J = project_with_jacobian(cam, X[sel])
             res[sel, k] = obs[sel, k] - uv
             N[sel] += np.einsum("nai,naj->nij", J, J)
     return X, N, res

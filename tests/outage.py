@@ -19,7 +19,7 @@ import pytest
 
 from tests.service_flow import HttpApi, free_port, stop_processes, wait_for_port
 from tests.services import require_postgres
-from tests.test_service_flow_postgres import ROOT, _manage
+from tests.test_service_flow_postgres import ROOT, run_manage
 
 SEED = ("from django.contrib.auth.models import User; from clinic.models import Clinic, Member, Patient, Visit;"
         "c = Clinic.objects.create(name='Northside');"
@@ -73,8 +73,8 @@ class Clinic:
                     "CELERY_BROKER_URL": broker.url, "CELERY_QUEUE": f"outage-{os.getpid()}",
                     "DJANGO_SETTINGS_MODULE": "clinic.settings", "TORSOSCAN_VAR": str(self.var),
                     "DB_CONN_MAX_AGE": "0", **env}
-        _manage(self.env, "migrate", "--noinput")
-        self.clinic_id, self.visit_id = map(int, _manage(self.env, "shell", "-c", SEED).split()[-2:])
+        run_manage(self.env, "migrate", "--noinput")
+        self.clinic_id, self.visit_id = map(int, run_manage(self.env, "shell", "-c", SEED).split()[-2:])
         self.port = free_port()
         self.server = subprocess.Popen(
             [sys.executable, "manage.py", "runserver", "--noreload", f"127.0.0.1:{self.port}"], cwd=ROOT,
@@ -107,7 +107,7 @@ class Clinic:
 
     def sweep(self, *args) -> str:
         """``manage.py dispatch_queued``, as beat runs it."""
-        return _manage(self.env, "dispatch_queued", *args)
+        return run_manage(self.env, "dispatch_queued", *args)
 
     def sql(self, query, *params):
         import psycopg

@@ -22,7 +22,7 @@ def body():
     return load_makehuman(1550.0, subdivisions=1)
 
 
-def _scan(body, yaw_deg=0.0, crop="torso", seed=0, rotation_deg=0.0, n=30_000):
+def scan(body, yaw_deg=0.0, crop="torso", seed=0, rotation_deg=0.0, n=30_000):
     """A scan of the MakeHuman subject turned by ``yaw_deg`` (its back towards the yaw's +Y), and its true posterior."""
     R = rotation_about([0, 0, 1], yaw_deg)
     V, _ = pose_body(body, SubjectConfig(), Posture(rotation_deg, 0.4 * rotation_deg, 0.0, 0.0, R, np.zeros(3)))
@@ -35,14 +35,14 @@ def _scan(body, yaw_deg=0.0, crop="torso", seed=0, rotation_deg=0.0, n=30_000):
 
 @pytest.mark.parametrize("crop,yaw", [("waist-to-head", 0.0), ("waist-to-head", 123.0), ("hips-to-chin", 211.0)])
 def test_it_finds_the_back_whatever_the_crop(body, crop, yaw):
-    torso, truth = _scan(body, yaw, crop)
+    torso, truth = scan(body, yaw, crop)
     post, info = detect_posterior(torso.points)
     assert np.degrees(np.arccos(np.clip(post @ truth, -1, 1))) < 10
     assert info["status"] == "certain" and info["method"] == "shape"
 
 
 def test_the_rig_footplate_decides_and_the_shape_checks_it(body):
-    torso, truth = _scan(body, 37.0)
+    torso, truth = scan(body, 37.0)
     post, info = detect_posterior(torso.points, prior={"posterior": truth.tolist(), "back_towards": ["A", "B"]})
     assert post @ truth > 0.98 and info["method"] == "rig" and info["status"] == "certain" and info["shape_agrees"]
     # the patient stood the other way round: the rig and the shape disagree, and the scan says so
@@ -51,7 +51,7 @@ def test_the_rig_footplate_decides_and_the_shape_checks_it(body):
 
 
 def test_an_uncertain_facing_withholds_every_sided_index(body):
-    torso, truth = _scan(body, 0.0, rotation_deg=8.0)
+    torso, truth = scan(body, 0.0, rotation_deg=8.0)
     torso.patient = {"posterior": (-truth).tolist(), "back_towards": ["C", "D"], "source": "rig"}
     rep = analyse_torso(torso).report
     assert rep["frame"]["facing"]["status"] == "uncertain"
@@ -62,8 +62,8 @@ def test_an_uncertain_facing_withholds_every_sided_index(body):
 
 def test_same_day_rescans_keep_the_patients_sides(body):
     # the re-scan is cut differently (the neck and chin in view) and sampled anew: the sides must not swap
-    a, truth = _scan(body, 15.0, "torso", seed=1, rotation_deg=8.0)
-    b, _ = _scan(body, 15.0, "hips-to-chin", seed=2, rotation_deg=8.0)
+    a, truth = scan(body, 15.0, "torso", seed=1, rotation_deg=8.0)
+    b, _ = scan(body, 15.0, "hips-to-chin", seed=2, rotation_deg=8.0)
     ra, rb = analyse_torso(a).report, analyse_torso(b).report
     for rep in (ra, rb):
         assert rep["frame"]["facing"]["status"] == "certain"
@@ -76,7 +76,7 @@ def test_the_facing_travels_in_the_torso_file(tmp_path, body):
     from recon_engine.results import posterior_comment
     from recon_engine.surface import write_ply
 
-    torso, truth = _scan(body, 0.0, n=5000)
+    torso, truth = scan(body, 0.0, n=5000)
     write_ply(tmp_path / "torso.ply", torso.points, torso.normals, comments=["torsoscan torso",
               posterior_comment(truth, ("A", "B"))])
     back = read_torso(tmp_path / "torso.ply")
@@ -84,8 +84,8 @@ def test_the_facing_travels_in_the_torso_file(tmp_path, body):
 
 
 def test_it_does_not_compare_sides_when_two_scans_disagree_on_the_facing(body):
-    a, truth = _scan(body, 0.0, seed=1, rotation_deg=8.0)
-    b, _ = _scan(body, 0.0, seed=2, rotation_deg=8.0)
+    a, truth = scan(body, 0.0, seed=1, rotation_deg=8.0)
+    b, _ = scan(body, 0.0, seed=2, rotation_deg=8.0)
     b = Torso(b.points, b.normals, source="turned", patient={"posterior": (-truth).tolist(), "source": "rig"})
     rep = compare_torsos(a, b)["report"]
     assert rep["facing"]["consistent"] is False and "disagree" in rep["facing"]["reason"]

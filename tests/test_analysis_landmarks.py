@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from analysis.indices import analyse_torso
-from tests.test_analysis_facing import _scan
+from tests.test_analysis_facing import scan
 
 
 @pytest.fixture(scope="module")
@@ -15,7 +15,7 @@ def body():
 
 
 def test_it_finds_both_landmarks_with_confidence_when_the_neck_and_the_sacrum_are_seen(body):
-    torso, _ = _scan(body, 20.0, "hips-to-chin", rotation_deg=6.0)
+    torso, _ = scan(body, 20.0, "hips-to-chin", rotation_deg=6.0)
     rep = analyse_torso(torso).report
     for k in ("vertebra_prominens", "sacral_point"):
         assert rep["landmarks"][k]["confidence"] == "high"
@@ -23,7 +23,7 @@ def test_it_finds_both_landmarks_with_confidence_when_the_neck_and_the_sacrum_ar
 
 
 def test_it_declares_the_indices_not_measurable_when_the_scan_starts_above_the_sacrum(body):
-    torso, _ = _scan(body, 0.0, "waist-to-head", rotation_deg=6.0)
+    torso, _ = scan(body, 0.0, "waist-to-head", rotation_deg=6.0)
     rep = analyse_torso(torso).report
     assert rep["landmarks"]["sacral_point"]["confidence"] == "low"
     assert rep["not_measurable"]["mark"] == ["sacral_point"] and "mark the landmark" in rep["not_measurable"]["reason"]

@@ -11,7 +11,7 @@ from clinic.models import CaptureSession
 from tests.api_helpers import auth, small_bundle
 
 
-def _zip(folder, extra=None):
+def zip_folder(folder, extra=None):
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as zf:
         for p in sorted(folder.rglob("*")):
@@ -38,7 +38,7 @@ def _stored_files(folder="captures"):
 @pytest.mark.django_db(transaction=True)
 def test_a_zip_bundle_is_stored_and_finalized_once(client, small_rig, tmp_path):
     _, key = small_rig
-    data = _zip(small_bundle(tmp_path))
+    data = zip_folder(small_bundle(tmp_path))
     first, again = _post(client, key, data), _post(client, key, data)
     assert (first.status_code, again.status_code) == (201, 200)
     assert first.json()["id"] == again.json()["id"] and first.json()["state"] == "finalized"
@@ -49,7 +49,7 @@ def test_a_zip_bundle_is_stored_and_finalized_once(client, small_rig, tmp_path):
 def test_it_rejects_a_zip_with_a_path_outside_the_bundle(client, small_rig, tmp_path):
     _, key = small_rig
     before = _stored_files()
-    r = _post(client, key, _zip(small_bundle(tmp_path), {"../../etc/evil.png": b"x"}))
+    r = _post(client, key, zip_folder(small_bundle(tmp_path), {"../../etc/evil.png": b"x"}))
     assert r.status_code == 400 and "../../etc/evil.png" in r.json()["detail"]
     assert CaptureSession.objects.count() == 0 and _stored_files() == before
 
@@ -61,7 +61,7 @@ def test_a_bad_image_in_a_zip_keeps_nothing(client, small_rig, tmp_path):
     manifest = json.loads((folder / "capture.json").read_text())
     manifest["images"][2]["sha256"] = "0" * 64
     (folder / "capture.json").write_text(json.dumps(manifest))
-    r = _post(client, key, _zip(folder))
+    r = _post(client, key, zip_folder(folder))
     assert r.status_code == 400 and "B1" in r.json()["detail"] and "sha256" in r.json()["detail"]
     assert CaptureSession.objects.count() == 0
     assert _stored_files() == []

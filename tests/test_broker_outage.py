@@ -16,7 +16,7 @@ from django.conf import settings
 
 from tests.outage import ROOT, OwnRedis, clinic_with_own_broker, images_in_store, wait_until
 from tests.service_flow import register_rig, upload_capture, wait_for_job
-from tests.test_service_flow_postgres import _manage
+from tests.test_service_flow_postgres import run_manage
 
 
 def test_it_runs_a_calibration_finalized_while_the_broker_was_down(tmp_path, rig_session_1):
@@ -59,7 +59,7 @@ def test_it_runs_a_calibration_finalized_while_the_broker_was_down(tmp_path, rig
         swept = time.time()
         assert "1 step(s) re-dispatched" in clinic.sweep("--older-than", "0")
         (pk,), = clinic.sql("SELECT id FROM clinic_job WHERE uid = %s", job_id)
-        _manage(clinic.env, "shell", "-c", f"from clinic.tasks import run_calibration; run_calibration.delay({pk})")
+        run_manage(clinic.env, "shell", "-c", f"from clinic.tasks import run_calibration; run_calibration.delay({pk})")
         job = wait_for_job(api, key, job_id, timeout=300)
         done_after = time.time() - swept
         assert job["state"] == "succeeded" and job["attempt"] == 1, job

@@ -14,7 +14,7 @@ from django.core.files.base import ContentFile
 CHROMIUM = os.environ.get("CHROMIUM", shutil.which("chromium") or "/usr/bin/chromium")
 
 
-def _chromium_or_skip():
+def chromium_or_skip():
     if not os.path.exists(CHROMIUM):
         message = f"Chromium not found at {CHROMIUM} (Debian package chromium)"
         if os.environ.get("CI", "").lower() == "true":
@@ -22,7 +22,7 @@ def _chromium_or_skip():
         pytest.skip(message)
 
 
-def _torso_ply(rotation_deg, seed):
+def torso_ply(rotation_deg, seed):
     import tempfile
     from pathlib import Path
 
@@ -52,7 +52,7 @@ def patient_with_two_visits(clinic, charlie):
         job = Job.objects.create(kind=Job.RECONSTRUCTION, rig=rig, session=session, state=Job.SUCCEEDED,
                                  percent=100, stage="done")
         rec = Reconstruction(job=job, session=session, status="ok", points=1, report={"registration": {"pairs": []}})
-        rec.torso.save("torso.ply", ContentFile(_torso_ply(rotation, k)), save=False)
+        rec.torso.save("torso.ply", ContentFile(torso_ply(rotation, k)), save=False)
         rec.report_file.save("report.json", ContentFile(b"{}"), save=False)
         rec.save()
         analyse_reconstruction(rec)
@@ -61,7 +61,7 @@ def patient_with_two_visits(clinic, charlie):
 
 @pytest.mark.django_db(transaction=True)
 def test_a_clinician_opens_a_comparison_and_its_deformation_map_loads(live_server, patient_with_two_visits):
-    _chromium_or_skip()
+    chromium_or_skip()
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as pw:

@@ -9,12 +9,12 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_browser_comparison import CHROMIUM, _chromium_or_skip, patient_with_two_visits  # noqa: F401
+from tests.test_browser_comparison import CHROMIUM, chromium_or_skip, patient_with_two_visits  # noqa: F401
 
 
 @pytest.mark.django_db(transaction=True)
 def test_no_page_scrolls_sideways_at_390_px(live_server, patient_with_two_visits, tmp_path):  # noqa: F811
-    _chromium_or_skip()
+    chromium_or_skip()
     from playwright.sync_api import sync_playwright
 
     p = patient_with_two_visits

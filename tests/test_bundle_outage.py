@@ -13,7 +13,7 @@ from clinic.models import CaptureImage, CaptureSession
 from tests.api_helpers import auth, small_bundle
 from tests.outage import clinic_with_own_broker, images_in_store
 from tests.service_flow import calibrate_set, register_rig, wait_for_job
-from tests.test_api_bundle import _zip
+from tests.test_api_bundle import zip_folder
 
 
 def test_it_keeps_a_bundle_sent_while_the_broker_was_down_and_runs_its_torso(tmp_path, rig_session_1):
@@ -23,7 +23,7 @@ def test_it_keeps_a_bundle_sent_while_the_broker_was_down_and_runs_its_torso(tmp
         key = register_rig(api, clinic.clinic_id, rig_session_1)
         assert calibrate_set(api, key, rig_session_1, "before")["state"] == "succeeded"
         folder = rig_session_1 / "captures" / "visit0-a"
-        data = _zip(folder)
+        data = zip_folder(folder)
 
         broker.stop()
         path = f"/api/bundles?visit={clinic.visit_id}"
@@ -56,7 +56,7 @@ def test_it_stores_again_the_images_a_broken_session_lost(client, small_rig, tmp
     # what the old defect left behind: a finalized session whose stored images were deleted
     _, key = small_rig
     folder = small_bundle(tmp_path)
-    data = _zip(folder)
+    data = zip_folder(folder)
     first = _bundle(client, key, data)
     assert first.status_code == 201
     for image in CaptureImage.objects.all():
@@ -75,7 +75,7 @@ def test_it_stores_again_the_images_a_broken_session_lost(client, small_rig, tmp
 @pytest.mark.django_db(transaction=True)
 def test_it_answers_503_with_retry_after_when_the_store_fails(client, small_rig, tmp_path, settings):
     _, key = small_rig
-    data = _zip(small_bundle(tmp_path))
+    data = zip_folder(small_bundle(tmp_path))
     good = settings.STORAGES
     blocker = tmp_path / "not-a-folder"
     blocker.write_text("a file where the store's folder should be")

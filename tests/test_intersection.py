@@ -82,12 +82,12 @@ def test_blocks_in_threads_give_the_same_points_as_one_block():
 
 
 def test_the_collinearity_jacobian_matches_central_differences():
-    from recon_engine.multiview import _project_with_jacobian
+    from recon_engine.multiview import project_with_jacobian
 
     rng = np.random.default_rng(5)
     cam = _cameras()[1]
     X = rng.uniform(-300, 300, (200, 3))
-    uv, J = _project_with_jacobian(cam, X)
+    uv, J = project_with_jacobian(cam, X)
     np.testing.assert_allclose(uv, cam.project(X), atol=1e-9)  # the same pixels as the camera model
     h = 1e-3  # mm
     for k in range(3):

@@ -175,7 +175,7 @@ def test_region_growing_follows_steep_skin():
 def test_growing_takes_each_points_nearest_matched_neighbours_within_its_radius():
     from scipy.spatial import cKDTree
 
-    from recon_engine.matching import _matched_neighbours
+    from recon_engine.matching import matched_neighbours
 
     rng = np.random.default_rng(7)
     xy = rng.uniform(0, 200, (3000, 2))
@@ -184,7 +184,7 @@ def test_growing_takes_each_points_nearest_matched_neighbours_within_its_radius(
     since = np.setdiff1d(np.nonzero(matched)[0], start)  # matched by its rounds
     todo = np.nonzero(~matched)[0]
     cfg = MatchingConfig(grow_radius_px=9.0, neighbours=8)
-    nb = _matched_neighbours(cKDTree(xy[start]), start, since, xy, todo, cfg)
+    nb = matched_neighbours(cKDTree(xy[start]), start, since, xy, todo, cfg)
     # brute force: every matched point's distance, the nearest 8 within the radius, nearest first
     d = np.linalg.norm(xy[todo, None] - xy[None, matched], axis=2)
     ids = np.nonzero(matched)[0]
@@ -229,7 +229,7 @@ def test_matching_samples_the_exact_bilinear_image():
 def test_the_long_search_in_the_pyramid_finds_the_full_resolution_disparities():
     from dataclasses import replace
 
-    from recon_engine.matching import _seed_disparities
+    from recon_engine.matching import seed_disparities
 
     rng = np.random.default_rng(6)
     cells = (rng.random((100, 300)) > 0.5).astype(np.float32) * 200 + 20
@@ -239,16 +239,16 @@ def test_the_long_search_in_the_pyramid_finds_the_full_resolution_disparities():
     xy = np.column_stack([rng.uniform(320, 730, 400), rng.uniform(10, 240, 400)])
     full_cfg = MatchingConfig(sparse_level=0)
     pyramid_cfg = replace(full_cfg, sparse_level=1, sparse_level_min_radius=150)
-    seeds_full, d_full = _seed_disparities(left, right, xy, 300.0, 400, full_cfg)
-    seeds, d = _seed_disparities(left, right, xy, 300.0, 400, pyramid_cfg)
+    seeds_full, d_full = seed_disparities(left, right, xy, 300.0, 400, full_cfg)
+    seeds, d = seed_disparities(left, right, xy, 300.0, 400, pyramid_cfg)
     assert len(seeds_full) > 0.9 * len(xy) and len(seeds) > 0.97 * len(seeds_full)
     assert np.all(np.abs(d - 310) < 0.5) and np.median(np.abs(d - 310)) < 0.05
     # found again at full resolution: the same peaks as the full-resolution search's
     common, i, j = np.intersect1d(seeds[:, 0], seeds_full[:, 0], return_indices=True)
     assert len(common) == len(seeds) and np.allclose(d[i], d_full[j], atol=1e-4)
     # a short range stays at full resolution: the same seeds as without the pyramid
-    short, d_short = _seed_disparities(left, right, xy, 300.0, 100, pyramid_cfg)
-    ref, d_ref = _seed_disparities(left, right, xy, 300.0, 100, full_cfg)
+    short, d_short = seed_disparities(left, right, xy, 300.0, 100, pyramid_cfg)
+    ref, d_ref = seed_disparities(left, right, xy, 300.0, 100, full_cfg)
     assert np.array_equal(short, ref) and np.array_equal(d_short, d_ref)
 
 

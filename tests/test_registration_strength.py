@@ -23,7 +23,7 @@ def _radius(theta, y, smooth_c):
     return 150.0 + bump
 
 
-def _four_arm_surfaces(smooth_c, n=3000, noise=0.02, seed=0):
+def four_arm_surfaces(smooth_c, n=3000, noise=0.02, seed=0):
     """Each arm's surface in its own (displaced) frame, and the true displacements."""
     rng = np.random.default_rng(seed)
     surfaces, truth = {}, {}
@@ -47,7 +47,7 @@ def _four_arm_surfaces(smooth_c, n=3000, noise=0.02, seed=0):
     return surfaces, truth
 
 
-def _register(surfaces, icpatch=None):
+def register(surfaces, icpatch=None):
     from recon_engine.reconstruction import TorsoConfig
 
     rig = SimpleNamespace(arms=tuple(SimpleNamespace(id=a) for a in ARMS),
@@ -58,8 +58,8 @@ def _register(surfaces, icpatch=None):
 
 
 def test_arms_held_by_bumpy_overlaps_are_ok():
-    surfaces, truth = _four_arm_surfaces(smooth_c=False)
-    res = _register(surfaces)
+    surfaces, truth = four_arm_surfaces(smooth_c=False)
+    res = register(surfaces)
     rep = res["report"]
     assert rep["status"] == "ok", rep["problems"]
     for a in "BCD":
@@ -70,8 +70,8 @@ def test_arms_held_by_bumpy_overlaps_are_ok():
 
 
 def test_an_arm_its_overlaps_leave_free_fails_the_torso_and_is_named():
-    surfaces, _ = _four_arm_surfaces(smooth_c=True)
-    rep = _register(surfaces)["report"]
+    surfaces, _ = four_arm_surfaces(smooth_c=True)
+    rep = register(surfaces)["report"]
     assert rep["status"] == "failed"
     weak = [p for p in rep["problems"] if "not held" in p]
     assert weak and all(p.startswith("arm C ") for p in weak), rep["problems"]

@@ -7,7 +7,7 @@ import numpy as np
 from recon_engine.registration import ICPatchConfig
 from recon_engine.surface import PointSurface
 
-from .test_registration_strength import ARMS, _four_arm_surfaces, _register
+from .test_registration_strength import ARMS, four_arm_surfaces, register
 
 
 def _with_imprecise_rims(surfaces, truth, bias_mm=0.15, rim_deg=50.0):
@@ -29,14 +29,14 @@ def _with_imprecise_rims(surfaces, truth, bias_mm=0.15, rim_deg=50.0):
 @lru_cache(maxsize=None)
 def _surfaces(biased=False):
     """The four arms' synthetic surfaces (with imprecise, biased rims if ``biased``) and the truth."""
-    surfaces, truth = _four_arm_surfaces(smooth_c=False, noise=0.02)
+    surfaces, truth = four_arm_surfaces(smooth_c=False, noise=0.02)
     return (_with_imprecise_rims(surfaces, truth) if biased else surfaces), truth
 
 
 @lru_cache(maxsize=None)
 def _registered(cfg, biased=False):
     """One registration per configuration, shared by the tests (each takes seconds; the tests only read it)."""
-    return _register(_surfaces(biased)[0], cfg)
+    return register(_surfaces(biased)[0], cfg)
 
 
 def _position_errors(res, truth, surfaces):

@@ -3,7 +3,7 @@
 import pytest
 from django.core.files.base import ContentFile
 
-from tests.test_browser_comparison import _torso_ply, patient_with_two_visits  # noqa: F401 (fixture)
+from tests.test_browser_comparison import torso_ply, patient_with_two_visits  # noqa: F401 (fixture)
 
 
 def _rescan(visit, rotation, seed):
@@ -17,7 +17,7 @@ def _rescan(visit, rotation, seed):
     job = Job.objects.create(kind=Job.RECONSTRUCTION, rig=first.rig, session=session, state=Job.SUCCEEDED,
                              percent=100, stage="done")
     rec = Reconstruction(job=job, session=session, status="ok", points=1, report={"registration": {"pairs": []}})
-    rec.torso.save("torso.ply", ContentFile(_torso_ply(rotation, seed)), save=False)
+    rec.torso.save("torso.ply", ContentFile(torso_ply(rotation, seed)), save=False)
     rec.report_file.save("report.json", ContentFile(b"{}"), save=False)
     rec.save()
     return analyse_reconstruction(rec)

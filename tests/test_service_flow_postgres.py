@@ -19,7 +19,7 @@ from tests.services import require_postgres, require_redis
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _manage(env, *args, **kw):
+def run_manage(env, *args, **kw):
     r = subprocess.run([sys.executable, "manage.py", *args], cwd=ROOT, env=env, capture_output=True, text=True,
                        timeout=300, **kw)
     assert r.returncode == 0, r.stderr[-3000:]
@@ -41,8 +41,8 @@ def services(tmp_path):
            "CELERY_BROKER_URL": redis_url, "CELERY_QUEUE": f"flow-{os.getpid()}",
            "DJANGO_SETTINGS_MODULE": "clinic.settings", "TORSOSCAN_VAR": str(tmp_path / "var"),
            "DB_CONN_MAX_AGE": "0"}
-    _manage(env, "migrate", "--noinput")
-    _manage(env, "shell", "-c",
+    run_manage(env, "migrate", "--noinput")
+    run_manage(env, "shell", "-c",
             "from django.contrib.auth.models import User; from clinic.models import Clinic, Member, Patient, Visit;"
             "c = Clinic.objects.create(name='Northside');"
             "u = User.objects.create_user('alice', '', 'pw-alice');"

@@ -18,7 +18,7 @@ from .config import ScenarioConfig
 
 def draw_postures(cfg: ScenarioConfig) -> dict:
     """Posture of every torso capture of ``cfg`` (name -> Posture), drawn as ``simulate`` draws them."""
-    from .scenario import _draw_posture
+    from .scenario import draw_posture
     from .rig import rotation_about
 
     _, _, rng_pose, rng_place = (
@@ -29,7 +29,7 @@ def draw_postures(cfg: ScenarioConfig) -> dict:
             yaw = rng_place.uniform(-cfg.subject.visit_yaw_deg, cfg.subject.visit_yaw_deg)
             shift = np.array([*rng_place.uniform(-cfg.subject.visit_shift_mm, cfg.subject.visit_shift_mm, 2), 0.0])
             placements[visit] = (rotation_about([0, 0, 1], yaw), shift)
-        out[name] = _draw_posture(cfg, rng_pose, visit, placements[visit])
+        out[name] = draw_posture(cfg, rng_pose, visit, placements[visit])
     return out
 
 

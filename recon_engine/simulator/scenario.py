@@ -75,7 +75,7 @@ def _calibration(rig_serial: str, cameras: dict, frame: str) -> Calibration:
     return Calibration(rig=rig_serial, calibrated_at=CAPTURED_AT, frame=frame, cameras=dict(cameras))
 
 
-def _draw_posture(cfg: ScenarioConfig, rng: np.random.Generator, visit: int, placement) -> Posture:
+def draw_posture(cfg: ScenarioConfig, rng: np.random.Generator, visit: int, placement) -> Posture:
     sc = cfg.subject
     R_place, t_place = placement
     tilt_axis = np.array([*rng.normal(0, 1, 2), 0.0])
@@ -201,7 +201,7 @@ def _simulate(out, cfg, force, progress, n_workers, pool) -> dict:
             yaw = rng_place.uniform(-cfg.subject.visit_yaw_deg, cfg.subject.visit_yaw_deg)
             shift = np.array([*rng_place.uniform(-cfg.subject.visit_shift_mm, cfg.subject.visit_shift_mm, 2), 0.0])
             placements[visit] = (rotation_about([0, 0, 1], yaw), shift)
-        posture = _draw_posture(cfg, rng_pose, visit, placements[visit])
+        posture = draw_posture(cfg, rng_pose, visit, placements[visit])
         V, spine = pose_body(body, cfg.subject, posture)
         skin = Surface("skin", V, body.triangles, albedo=albedo)
         scene = Scene([skin, *background])  # for the landmarks below
