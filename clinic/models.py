@@ -353,3 +353,63 @@ class Comparison(models.Model):
     class Meta:
         constraints = [models.UniqueConstraint(fields=["earlier", "later"], name="one_comparison_per_pair")]
         ordering = ["-created"]
+
+
+class AuditTrailError(Exception):
+    """An attempt to rewrite the audit trail: it is append-only."""
+
+
+class AuditQuerySet(models.QuerySet):
+    # the application may only add to the trail; bulk rewrites are refused like single ones
+    def update(self, **kwargs):
+        raise AuditTrailError("audit events cannot be changed")
+
+    def delete(self):
+        raise AuditTrailError("audit events cannot be deleted")
+
+
+class AuditEvent(models.Model):
+    """Who viewed, downloaded, created, changed or deleted which patient's data, when and from where.
+
+    Written by ``clinic/audit.py``. The patient is an integer copy, not a
+    foreign key, so a patient's trail outlives the patient's erasure; the
+    user's name is copied for the same reason.
+    """
+
+    VIEW, DOWNLOAD, CREATE, CHANGE, DELETE = "view", "download", "create", "change", "delete"
+    EXPORT, ERASE, LOGIN, LOGIN_FAILED = "export", "erase", "login", "login_failed"
+    ACTIONS = [(VIEW, "View"), (DOWNLOAD, "Download"), (CREATE, "Create"), (CHANGE, "Change"), (DELETE, "Delete"),
+               (EXPORT, "Export"), (ERASE, "Erase"), (LOGIN, "Sign-in"), (LOGIN_FAILED, "Failed sign-in")]
+
+    time = models.DateTimeField(default=timezone.now, db_index=True)
+    user = models.ForeignKey(settings.AUTH_USER_MODEL, models.SET_NULL, null=True, blank=True, related_name="+")
+    username = models.CharField(max_length=150, blank=True, db_index=True)
+    rig_serial = models.CharField(max_length=64, blank=True, help_text="The rig whose key made the request")
+    clinic = models.ForeignKey(Clinic, models.SET_NULL, null=True, blank=True, related_name="+")
+    patient_id = models.BigIntegerField(null=True, blank=True, db_index=True)
+    action = models.CharField(max_length=16, choices=ACTIONS)
+    object_type = models.CharField(max_length=40, blank=True)
+    object_id = models.CharField(max_length=64, blank=True)
+    path = models.CharField(max_length=500, blank=True)
+    method = models.CharField(max_length=10, blank=True)
+    status = models.PositiveSmallIntegerField(null=True, blank=True)
+    remote_addr = models.GenericIPAddressField(null=True, blank=True)
+    detail = models.JSONField(default=dict, blank=True, help_text="e.g. the rows and files an erasure removed")
+
+    objects = AuditQuerySet.as_manager()
+
+    class Meta:
+        ordering = ["-time", "-id"]
+
+    def __str__(self):
+        who = self.username or self.rig_serial or "system"
+        return f"{self.time:%Y-%m-%d %H:%M:%S} {who} {self.action} {self.object_type} {self.object_id}".rstrip()
+
+    def save(self, *args, **kwargs):
+        if not self._state.adding:
+            raise AuditTrailError("audit events cannot be changed")
+        kwargs["force_insert"] = True  # never an UPDATE, even with an explicit primary key
+        super().save(*args, **kwargs)
+
+    def delete(self, *args, **kwargs):
+        raise AuditTrailError("audit events cannot be deleted")
