@@ -16,12 +16,16 @@ the upload.
 import hashlib
 import json
 import logging
+import secrets
+import struct
 import tempfile
 import zipfile
+import datetime as dt
 from pathlib import Path, PurePosixPath
-from typing import Optional
+from typing import Annotated, Literal, Optional
 
 from django.conf import settings
+from django.core.exceptions import RequestDataTooBig
 from django.core.files import File
 from django.core.files.storage import default_storage
 from django.db import DatabaseError, IntegrityError, InterfaceError, OperationalError, transaction
@@ -29,16 +33,22 @@ from django.http import FileResponse
 from django.shortcuts import get_object_or_404
 from django.utils import timezone
 from ninja import NinjaAPI, Schema
+from ninja import Path as PathParam
+from pydantic import Field, field_validator
 from ninja.security import HttpBearer, django_auth
 
 from recon_engine.formats import FormatError, check_zip_members, decode_image, parse_capture_manifest, rig_from_dict
 
 from . import pipeline
+from .imageheaders import HeaderError, image_size
+from .validation import (MAX_ID, MAX_INTERVAL_DAYS, MAX_NOTES, MAX_POSES, DbId, Invalid, check_capture, check_json,
+                         check_length, check_param, check_rig, text)
 from .models import (CaptureImage, CaptureSession, Job, Member, Patient, Reconstruction, Rig, RigKey, TestField,
                      Visit, clinics_of, image_path)
 
 CHUNK = 1 << 20
 RETRY_AFTER_SECONDS = 30  # what a 503 asks the rig to wait before retrying
+MAX_BUNDLE_MEMBERS = 1000  # a capture holds a manifest and one image per camera; a zip's directory is parsed whole
 
 log = logging.getLogger(__name__)
 
@@ -86,8 +96,24 @@ def _database_down(request, exc):
 
 
 @api.exception_handler(FormatError)
+@api.exception_handler(Invalid)
 def _format_error(request, exc):
     return api.create_response(request, {"detail": str(exc)}, status=400)
+
+
+@api.exception_handler(RequestDataTooBig)
+def _body_too_big(request, exc):
+    # a JSON body is read whole into memory: Django's DATA_UPLOAD_MAX_MEMORY_SIZE bounds it
+    return api.create_response(request, {"detail": f"the request body is larger than "
+                                                   f"{settings.DATA_UPLOAD_MAX_MEMORY_SIZE} bytes"}, status=413)
+
+
+@api.exception_handler(Exception)
+def _internal_error(request, exc):
+    """A defect, not bad input: logged with its traceback under an id the answer gives, so a report finds it."""
+    error_id = secrets.token_hex(4)
+    log.error("internal error %s during %s %s", error_id, request.method, request.path, exc_info=exc)
+    return api.create_response(request, {"detail": "internal error", "id": error_id}, status=500)
 
 
 def _respond(request, data, status=200):
@@ -96,38 +122,55 @@ def _respond(request, data, status=200):
 
 # --- schemas ---------------------------------------------------------------------------
 
+# Every field is bounded here, as its column is (clinic/models.py), so the OpenAPI shows the limits and a
+# value past them is a 422 naming the field before the database sees it.
+CalibrationSet = text(100, min_length=1)
+Poses = Annotated[int, Field(ge=1, le=MAX_POSES)]
+
+
 class SessionIn(Schema):
     manifest: dict  # capture.json
-    visit: Optional[int] = None  # torso sessions: the visit they belong to
-    calibration_set: Optional[str] = None  # test-field sessions calibrated together (default: the capture's date)
-    poses: Optional[int] = None  # how many test-field poses the set holds (default: the rig's setting)
+    visit: Optional[DbId] = None  # torso sessions: the visit they belong to
+    calibration_set: Optional[CalibrationSet] = None  # test-field sessions calibrated together (default: the date)
+    poses: Optional[Poses] = None  # how many test-field poses the set holds (default: the rig's setting)
 
 
 class RigIn(Schema):
-    clinic: int
+    clinic: DbId
     rig: dict  # rig.json
-    recalibration_interval_days: int = 30
-    poses_per_calibration: int = 3
+    recalibration_interval_days: Annotated[int, Field(ge=1, le=MAX_INTERVAL_DAYS)] = 30
+    poses_per_calibration: Poses = 3
 
 
 class TestFieldIn(Schema):
-    clinic: int
+    clinic: DbId
     testfield: dict  # testfield.json
 
 
+def _not_in_future(value: Optional[dt.date], what: str) -> Optional[dt.date]:
+    if value is not None and value > timezone.localdate():
+        raise ValueError(f"{what} {value} is in the future")
+    return value
+
+
 class PatientIn(Schema):
-    clinic: int
-    identifier: str
-    name: str
-    date_of_birth: Optional[str] = None
-    sex: str = ""
-    notes: str = ""
+    clinic: DbId
+    identifier: text(64, min_length=1, strip=True)
+    name: text(200, min_length=1, strip=True)
+    date_of_birth: Optional[dt.date] = None
+    sex: Literal["", "F", "M", "X"] = ""  # female, male, other / not stated
+    notes: text(MAX_NOTES) = ""
+
+    @field_validator("date_of_birth")
+    @classmethod
+    def _born_in_the_past(cls, value):
+        return _not_in_future(value, "date of birth")
 
 
 class VisitIn(Schema):
-    date: Optional[str] = None
-    reason: str = ""
-    notes: str = ""
+    date: Optional[dt.date] = None
+    reason: text(200) = ""
+    notes: text(MAX_NOTES) = ""
 
 
 # --- helpers ------------------------------------------------------------------------------
@@ -185,8 +228,34 @@ def _canonical_sha256(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
-def _spool(stream, limit: int, what: str):
-    """Copy a request (or zip member) stream to a temporary file in chunks: (file, sha256, size)."""
+def _body(request, limit: int, what: str):
+    """The raw request body as a stream, refused before it is read when it cannot fit ``limit``.
+
+    A declared Content-Length above the limit is a 413 at once. A chunked body (no Content-Length) is read
+    to its end only where the server delimits it (``wsgi.input_terminated``: gunicorn does, and behind nginx
+    every request arrives with a Content-Length anyway, nginx having buffered it); elsewhere Django would see
+    an empty body, so it is a 411 rather than a misleading "sha256 mismatch" or "not a zip".
+    """
+    declared = request.META.get("CONTENT_LENGTH", "")
+    if declared:
+        try:
+            length = int(declared)
+        except ValueError:
+            raise ApiError(400, f"Content-Length {declared!r} is not a number") from None
+        if length > limit:
+            raise ApiError(413, f"{what} is larger than {limit} bytes (Content-Length {length}); nothing was read")
+        return request
+    if "chunked" in request.META.get("HTTP_TRANSFER_ENCODING", "").lower():
+        if request.META.get("wsgi.input_terminated"):
+            return request.META["wsgi.input"]  # read to its end by _spool, at most ``limit`` bytes
+        raise ApiError(411, f"{what}: this server cannot read a chunked body; send it with a Content-Length")
+    return request  # no body at all: an empty one
+
+
+def _spool(stream, limit: int, what: str, status: int = 413):
+    """Copy a request (or zip member) stream to a temporary file in chunks: (file, sha256, size).
+
+    Counts what it reads, whatever the stream claimed (a zip member's declared size may lie)."""
     tmp = tempfile.NamedTemporaryFile(dir=settings.FILE_UPLOAD_TEMP_DIR, suffix=".part")
     digest, size = hashlib.sha256(), 0
     while True:
@@ -196,7 +265,7 @@ def _spool(stream, limit: int, what: str):
         size += len(chunk)
         if size > limit:
             tmp.close()
-            raise ApiError(413, f"{what} is larger than {limit} bytes")
+            raise ApiError(status, f"{what} is larger than {limit} bytes")
         digest.update(chunk)
         tmp.write(chunk)
     tmp.flush()
@@ -205,7 +274,18 @@ def _spool(stream, limit: int, what: str):
 
 
 def _check_image(tmp, rig, image: CaptureImage, where: str):
-    """Refuse a truncated or undecodable image, or one of the wrong size (names the camera)."""
+    """Refuse a truncated or undecodable image, or one of the wrong size (names the camera).
+
+    The size is read from the header first: only an image of the camera's size is decoded (a small file may
+    claim a huge image, and decoding allocates all of it)."""
+    spec = rig.cameras.get(image.camera)
+    try:
+        width, height = image_size(tmp)
+    except HeaderError as exc:
+        raise ApiError(400, f"{where}: camera {image.camera!r}: {exc}") from None
+    if spec is not None and (width, height) != (spec.width, spec.height):
+        raise ApiError(400, f"{where}: camera {image.camera!r}: image is {width}x{height} px, "
+                            f"rig.json says {spec.width}x{spec.height}")
     tmp.seek(0)
     decode_image(tmp.read(), where, image.camera, PurePosixPath(image.file_name).suffix.lower(), rig)
     tmp.seek(0)
@@ -213,13 +293,15 @@ def _check_image(tmp, rig, image: CaptureImage, where: str):
 
 def _idempotency_key(request, manifest: dict) -> str:
     """What identifies a retried request: the rig's ``Idempotency-Key`` header, else the manifest's checksum."""
-    return request.headers.get("Idempotency-Key", "") or "manifest:" + _canonical_sha256(manifest)
+    key = check_param(request.headers.get("Idempotency-Key", ""), "Idempotency-Key header", 200)
+    return key or "manifest:" + _canonical_sha256(manifest)
 
 
 def _create_session(rig: Rig, body: SessionIn, key: str):
     """(session, created). A retried request (same key or same manifest) finds the first session."""
     engine_rig = rig_from_dict(rig.description, f"rig {rig.serial}")
     capture = parse_capture_manifest(body.manifest, "capture.json", engine_rig)
+    check_capture(capture, body.manifest, "capture.json")
     existing = CaptureSession.objects.filter(rig=rig, idempotency_key=key).first()
     if existing is not None:
         return existing, False
@@ -234,8 +316,6 @@ def _create_session(rig: Rig, body: SessionIn, key: str):
         if testfield is None:
             raise ApiError(400, f"capture.json: test field {capture.testfield!r} is not registered for "
                                 f"{rig.clinic.name}")
-    if body.poses is not None and body.poses < 1:
-        raise ApiError(400, f"poses must be at least 1, got {body.poses}")
     try:
         with transaction.atomic():
             session = CaptureSession.objects.create(
@@ -305,6 +385,7 @@ def create_session(request, body: SessionIn):
     the manifest's checksum identifies the session.
     """
     rig = request.rig
+    check_json(body.manifest, "capture.json")
     serial = body.manifest.get("rig")
     if serial != rig.serial:
         raise ApiError(403, f"this key belongs to rig {rig.serial}; the manifest names rig {serial!r}")
@@ -314,14 +395,18 @@ def create_session(request, body: SessionIn):
 
 @api.put("/sessions/{session_id}/images/{camera}", auth=RigKeyAuth(), tags=["rig"])
 def put_image(request, session_id: str, camera: str):
-    """Upload one image as the raw request body. The server recomputes its sha256 and checks it decodes."""
+    """Upload one image as the raw request body. The server recomputes its sha256 and checks it decodes.
+
+    Send it with a Content-Length (at most the server's MAX_IMAGE_BYTES).
+    """
+    body = _body(request, settings.MAX_IMAGE_BYTES, f"image of camera {camera!r}")
     s = get_object_or_404(_sessions_for(request), uid=_uuid(session_id))
     if s.state != s.OPEN:
         raise ApiError(409, f"session {s.uid} is finalized; it takes no more images")
-    image = s.images.filter(camera=camera).first()
+    image = s.images.filter(camera=check_param(camera, "camera", 32)).first()
     if image is None:
         raise ApiError(400, f"unknown camera {camera!r}: not in session {s.uid}'s manifest")
-    tmp, digest, size = _spool(request, settings.MAX_IMAGE_BYTES, f"image of camera {camera!r}")
+    tmp, digest, size = _spool(body, settings.MAX_IMAGE_BYTES, f"image of camera {camera!r}")
     with tmp:
         if digest != image.sha256:
             raise ApiError(400, f"camera {camera!r}: sha256 mismatch (manifest {image.sha256}, received {digest}, "
@@ -388,8 +473,12 @@ def _discard_unreferenced(names):
 
 def _spool_member(zf, im, engine_rig):
     """A bundle's image spooled and checked against the manifest: (temporary file, size)."""
+    declared = zf.getinfo(im.file).file_size
+    if declared > settings.MAX_IMAGE_BYTES:
+        raise ApiError(400, f"bundle.zip!{im.file}: camera {im.camera!r}: inflates to {declared} bytes, more than "
+                            f"an image may have ({settings.MAX_IMAGE_BYTES})")
     with zf.open(im.file) as member:
-        part, d, n = _spool(member, settings.MAX_IMAGE_BYTES, f"bundle.zip!{im.file}")
+        part, d, n = _spool(member, settings.MAX_IMAGE_BYTES, f"bundle.zip!{im.file}", status=400)
     try:
         if d != im.sha256:
             raise ApiError(400, f"bundle.zip!{im.file}: camera {im.camera!r}: sha256 mismatch "
@@ -429,35 +518,80 @@ def _complete_from_bundle(session: CaptureSession, zf, capture, engine_rig, mani
     return session
 
 
+def _zip_entries(fh) -> Optional[int]:
+    """How many members a zip's end-of-central-directory record declares (None when it cannot be found).
+
+    Read before :class:`zipfile.ZipFile` parses the directory whole, which costs memory per member."""
+    fh.seek(0, 2)
+    end = fh.tell()
+    fh.seek(max(0, end - (22 + 65535)))  # the record, after at most a 64 KiB comment
+    tail = fh.read()
+    at = tail.rfind(b"PK\x05\x06")
+    if at < 0 or len(tail) < at + 22:
+        return None
+    (entries,) = struct.unpack("<H", tail[at + 10:at + 12])
+    locator = at - 20  # zip64: the real count is in the zip64 record the locator points to
+    if entries == 0xFFFF and locator >= 0 and tail[locator:locator + 4] == b"PK\x06\x07":
+        (record,) = struct.unpack("<Q", tail[locator + 8:locator + 16])
+        fh.seek(record)
+        head = fh.read(40)
+        if len(head) == 40 and head[:4] == b"PK\x06\x06":
+            (entries,) = struct.unpack("<Q", head[32:40])
+    return entries
+
+
+def _read_manifest(zf) -> dict:
+    """bundle.zip's capture.json, read in chunks up to MAX_MANIFEST_BYTES (its declared size may lie)."""
+    limit = settings.MAX_MANIFEST_BYTES
+    if zf.getinfo("capture.json").file_size > limit:
+        raise ApiError(400, f"bundle.zip!capture.json: inflates to {zf.getinfo('capture.json').file_size} bytes, "
+                            f"more than a manifest may have ({limit})")
+    data = bytearray()
+    with zf.open("capture.json") as member:
+        while chunk := member.read(CHUNK):
+            data += chunk
+            if len(data) > limit:
+                raise ApiError(400, f"bundle.zip!capture.json is larger than {limit} bytes")
+    try:
+        return json.loads(bytes(data).decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise ApiError(400, f"bundle.zip!capture.json: not valid JSON ({type(exc).__name__}: {exc})") from None
+
+
 @api.post("/bundles", auth=RigKeyAuth(), tags=["rig"])
-def upload_bundle(request, visit: Optional[int] = None, calibration_set: Optional[str] = None,
-                  poses: Optional[int] = None):
+def upload_bundle(request, visit: Optional[DbId] = None, calibration_set: Optional[CalibrationSet] = None,
+                  poses: Optional[Poses] = None):
     """A whole capture bundle as one zip (raw body): checked whole, stored whole, finalized; or refused.
 
+    Send it with a Content-Length (at most the server's MAX_BUNDLE_BYTES).
     Retrying is safe: a retry of a bundle already received answers 200 with
     its session, after storing again anything the session lacks.
     """
     rig = request.rig
-    tmp, digest, size = _spool(request, settings.MAX_BUNDLE_BYTES, "the bundle")
+    tmp, digest, size = _spool(_body(request, settings.MAX_BUNDLE_BYTES, "the bundle"), settings.MAX_BUNDLE_BYTES,
+                               "the bundle")
     with tmp:
         if not zipfile.is_zipfile(tmp):
             raise ApiError(400, "the bundle is not a zip file")
+        entries = _zip_entries(tmp)
+        if entries is not None and entries > MAX_BUNDLE_MEMBERS:
+            raise ApiError(400, f"bundle.zip holds {entries} members; a capture has at most {MAX_BUNDLE_MEMBERS}")
         tmp.seek(0)
         with zipfile.ZipFile(tmp) as zf:
             check_zip_members(zf, "bundle.zip")
             names = set(zf.namelist())
             if "capture.json" not in names:
                 raise ApiError(400, "bundle.zip: no capture.json at the zip's root")
-            try:
-                manifest = json.loads(zf.read("capture.json").decode("utf-8"))
-            except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-                raise ApiError(400, f"bundle.zip!capture.json: not valid JSON ({exc})") from None
+            manifest = _read_manifest(zf)
+            if isinstance(manifest, dict):
+                check_json(manifest, "bundle.zip!capture.json")
             if not isinstance(manifest, dict) or manifest.get("rig") != rig.serial:
                 raise ApiError(403, f"this key belongs to rig {rig.serial}; the manifest names rig "
                                     f"{manifest.get('rig') if isinstance(manifest, dict) else None!r}")
             body = SessionIn(manifest=manifest, visit=visit, calibration_set=calibration_set, poses=poses)
             engine_rig = rig_from_dict(rig.description, f"rig {rig.serial}")
             capture = parse_capture_manifest(manifest, "bundle.zip!capture.json", engine_rig)
+            check_capture(capture, manifest, "bundle.zip!capture.json")
             for im in capture.images:
                 if im.file not in names:
                     raise ApiError(400, f"bundle.zip!{im.file}: camera {im.camera!r}: image file is missing")
@@ -533,7 +667,9 @@ def _uuid(value: str):
 def register_rig(request, body: RigIn):
     """Register a rig from its ``rig.json``; the answer holds its API key, shown this once."""
     clinic = _member_clinic(request, body.clinic)
+    check_json(body.rig, "rig.json")
     engine_rig = rig_from_dict(body.rig, "rig.json")
+    check_rig(body.rig, engine_rig, "rig.json")
     if Rig.objects.filter(serial=engine_rig.serial).exists():
         raise ApiError(409, f"rig {engine_rig.serial} is already registered")
     with transaction.atomic():
@@ -559,6 +695,7 @@ def sync_cameras(rig: Rig, engine_rig) -> None:
 
 @api.post("/rigs/{serial}/keys", auth=django_auth, tags=["staff"])
 def new_rig_key(request, serial: str):
+    check_param(serial, "serial", 64)
     rig = get_object_or_404(Rig.objects.filter(clinic__in=clinics_of(request.user)), serial=serial)
     _member_clinic(request, rig.clinic_id)
     _, key = RigKey.issue(rig)
@@ -567,6 +704,8 @@ def new_rig_key(request, serial: str):
 
 @api.delete("/rigs/{serial}/keys/{prefix}", auth=django_auth, tags=["staff"])
 def revoke_rig_key(request, serial: str, prefix: str):
+    check_param(serial, "serial", 64)
+    check_param(prefix, "prefix", 16)
     rig = get_object_or_404(Rig.objects.filter(clinic__in=clinics_of(request.user)), serial=serial)
     _member_clinic(request, rig.clinic_id)
     n = rig.keys.filter(prefix=prefix, revoked__isnull=True).update(revoked=timezone.now())
@@ -580,6 +719,7 @@ def register_testfield(request, body: TestFieldIn):
     from recon_engine.formats import read_testfield
 
     clinic = _member_clinic(request, body.clinic)
+    check_json(body.testfield, "testfield.json")
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "testfield.json"
         path.write_text(json.dumps(body.testfield), encoding="utf-8")
@@ -587,6 +727,7 @@ def register_testfield(request, body: TestFieldIn):
             tf = read_testfield(path)
         except FormatError as exc:
             raise ApiError(400, str(exc).replace(str(path), "testfield.json")) from None
+    check_length(tf.name, "testfield.json: name", 200)
     obj, created = TestField.objects.get_or_create(clinic=clinic, name=tf.name,
                                                    defaults={"description": body.testfield})
     if not created and obj.description != body.testfield:
@@ -605,8 +746,10 @@ def create_patient(request, body: PatientIn):
 
 
 @api.post("/patients/{patient_id}/visits", auth=django_auth, tags=["staff"])
-def create_visit(request, patient_id: int, body: VisitIn):
+def create_visit(request, body: VisitIn, patient_id: int = PathParam(..., ge=1, le=MAX_ID)):
     patient = get_object_or_404(Patient.objects.filter(clinic__in=clinics_of(request.user)), pk=patient_id)
+    if body.date is not None and patient.date_of_birth and body.date < patient.date_of_birth:
+        raise ApiError(400, f"date {body.date} is before the patient's date of birth ({patient.date_of_birth})")
     v = Visit.objects.create(patient=patient, date=body.date or timezone.localdate(), clinician=request.user,
                              reason=body.reason, notes=body.notes)
     return _respond(request, {"id": v.pk, "date": str(v.date)}, 201)

@@ -112,6 +112,7 @@ MIDDLEWARE = [
     "django.middleware.common.CommonMiddleware",
     "django.middleware.csrf.CsrfViewMiddleware",
     "django.contrib.auth.middleware.AuthenticationMiddleware",
+    "clinic.audit.AuditMiddleware",  # who viewed or changed which patient's data (needs request.user)
     "django.contrib.messages.middleware.MessageMiddleware",
     "django.middleware.clickjacking.XFrameOptionsMiddleware",
     "axes.middleware.AxesMiddleware",  # last: turns a locked-out sign-in into the lockout page
@@ -212,6 +213,8 @@ FILE_UPLOAD_TEMP_DIR = str(VAR_DIR / "tmp")
 Path(FILE_UPLOAD_TEMP_DIR).mkdir(parents=True, exist_ok=True)
 MAX_IMAGE_BYTES = envint("MAX_IMAGE_BYTES", 200 * 1024 * 1024)
 MAX_BUNDLE_BYTES = envint("MAX_BUNDLE_BYTES", 2 * 1024 * 1024 * 1024)
+# a bundle's capture.json is read into memory: a few KiB in practice (20 images), 1 MiB at most
+MAX_MANIFEST_BYTES = envint("MAX_MANIFEST_BYTES", 1024 * 1024)
 # where workers unpack captures for the engine (local to each worker)
 WORK_DIR = os.environ.get("WORK_DIR", str(VAR_DIR / "work"))
 
@@ -263,5 +266,25 @@ CELERY_BEAT_SCHEDULE = {
         "schedule": JOB_SWEEP_SECONDS,
         # a sweep still waiting behind busy workers when the next one is due is dropped, not piled up
         "options": {"expire_seconds": JOB_SWEEP_SECONDS},
+    },
+}
+
+# Logs go to the console (the container's log) through the root logger: the app's loggers at LOG_LEVEL (INFO
+# by default), and every unexpected error of a request with its traceback (django.request logs a page's 500 at
+# ERROR; the API logs its own, under the id its answer gives). A Celery worker puts its own handler on the root.
+LOG_LEVEL = os.environ.get("LOG_LEVEL", "INFO").upper()
+if LOG_LEVEL not in ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"):
+    raise ImproperlyConfigured(f"LOG_LEVEL={LOG_LEVEL!r}: use DEBUG, INFO, WARNING, ERROR or CRITICAL")
+LOGGING = {
+    "version": 1,
+    "disable_existing_loggers": False,
+    "formatters": {"plain": {"format": "%(asctime)s %(levelname)s %(name)s: %(message)s"}},
+    "handlers": {"console": {"class": "logging.StreamHandler", "formatter": "plain"}},
+    "root": {"handlers": ["console"], "level": "WARNING"},
+    "loggers": {
+        # Django's own console handler (DEBUG only) and mail to ADMINS are replaced by the root's
+        "django": {"handlers": [], "level": "INFO", "propagate": True},
+        "django.request": {"level": "ERROR", "propagate": True},
+        **{name: {"level": LOG_LEVEL, "propagate": True} for name in ("clinic", "recon_engine", "analysis")},
     },
 }
