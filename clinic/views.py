@@ -9,6 +9,8 @@ meta tag, no JavaScript needed).
 
 import io
 import json
+import logging
+import math
 import tempfile
 from pathlib import Path
 
@@ -35,6 +37,9 @@ from .models import Comparison, Job, Member, Patient, Reconstruction, Rig, Visit
 CORRECT_LANDMARKS = (Member.CLINICIAN, Member.ADMINISTRATOR)  # a clinical judgement: not technicians
 MANAGE_MEMBERS = (Member.ADMINISTRATOR,)
 EDIT_PATIENTS = (Member.CLINICIAN, Member.TECHNICIAN, Member.ADMINISTRATOR)  # as the API's create_patient
+LANDMARK_LIMIT_MM = 5000.0  # a landmark's coordinates in the rig's frame: the rig is a couple of metres across
+
+log = logging.getLogger(__name__)
 
 
 def _require_role(request, clinic_id, roles=None):
@@ -447,21 +452,29 @@ def correct_landmarks(request, visit_id):
     rec = _best(v)
     if rec is None:
         raise Http404("this visit has no torso yet")
-    landmarks = {}
+    landmarks = {}  # every landmark is checked before any is stored
     for name in ("vertebra_prominens", "sacral_point"):
         raw = request.POST.get(name, "").strip()
         if raw:
             try:
-                xyz = [float(t) for t in raw.replace(",", " ").split()]
+                xyz = [float(t) for t in raw[:200].replace(",", " ").split()]
             except ValueError:
                 xyz = []
-            if len(xyz) != 3:
+            # finite and within a few metres of the rig: NaN or 1e300 would break the indices (and JSON)
+            if len(xyz) != 3 or not all(math.isfinite(c) and abs(c) <= LANDMARK_LIMIT_MM for c in xyz):
                 return render(request, "clinic/error.html", {
-                    "message": f"{name.replace('_', ' ')}: give three numbers x y z in mm, got {raw!r}"}, status=400)
+                    "message": f"{name.replace('_', ' ')}: give three numbers x y z in mm (each within "
+                               f"±{LANDMARK_LIMIT_MM:g} mm), got {raw[:80]!r}"}, status=400)
             landmarks[name] = xyz
-    rec.landmarks = landmarks or None
-    rec.save(update_fields=["landmarks"])
-    analyse_reconstruction(rec)
+    try:
+        with transaction.atomic():  # the correction and the indices computed from it, or neither
+            rec.landmarks = landmarks or None
+            rec.save(update_fields=["landmarks"])
+            analyse_reconstruction(rec)
+    except Exception:
+        log.exception("visit %s: the indices could not be computed from corrected landmarks %s", v.pk, landmarks)
+        return _refused(request, "The indices could not be computed from these landmarks; the correction was "
+                                 "not saved.", 500, back=reverse("visit", args=[v.pk]))
     return redirect("visit", visit_id=v.pk)
 
 
