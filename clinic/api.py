@@ -13,6 +13,7 @@ storage fails, the answer is 503 with ``Retry-After``, and the retry finishes
 the upload.
 """
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -20,6 +21,7 @@ import secrets
 import struct
 import tempfile
 import zipfile
+import zlib
 import datetime as dt
 from pathlib import Path, PurePosixPath
 from typing import Annotated, Literal, Optional
@@ -471,13 +473,27 @@ def _discard_unreferenced(names):
                 log.exception("could not delete %s (unreferenced, left behind)", name)
 
 
+# what reading a corrupt, encrypted or oddly compressed zip member raises (a bad CRC, a truncated stream...)
+ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, RuntimeError, NotImplementedError)
+
+
+@contextlib.contextmanager
+def _zip_member(zf, name: str):
+    """A member opened for reading; its corruption is the bundle's fault (400 naming it), not a 500."""
+    try:
+        with zf.open(name) as member:
+            yield member
+    except ZIP_ERRORS as exc:
+        raise ApiError(400, f"bundle.zip!{name}: cannot be read ({type(exc).__name__}: {exc})") from None
+
+
 def _spool_member(zf, im, engine_rig):
     """A bundle's image spooled and checked against the manifest: (temporary file, size)."""
     declared = zf.getinfo(im.file).file_size
     if declared > settings.MAX_IMAGE_BYTES:
         raise ApiError(400, f"bundle.zip!{im.file}: camera {im.camera!r}: inflates to {declared} bytes, more than "
                             f"an image may have ({settings.MAX_IMAGE_BYTES})")
-    with zf.open(im.file) as member:
+    with _zip_member(zf, im.file) as member:
         part, d, n = _spool(member, settings.MAX_IMAGE_BYTES, f"bundle.zip!{im.file}", status=400)
     try:
         if d != im.sha256:
@@ -547,7 +563,7 @@ def _read_manifest(zf) -> dict:
         raise ApiError(400, f"bundle.zip!capture.json: inflates to {zf.getinfo('capture.json').file_size} bytes, "
                             f"more than a manifest may have ({limit})")
     data = bytearray()
-    with zf.open("capture.json") as member:
+    with _zip_member(zf, "capture.json") as member:
         while chunk := member.read(CHUNK):
             data += chunk
             if len(data) > limit:
@@ -577,7 +593,11 @@ def upload_bundle(request, visit: Optional[DbId] = None, calibration_set: Option
         if entries is not None and entries > MAX_BUNDLE_MEMBERS:
             raise ApiError(400, f"bundle.zip holds {entries} members; a capture has at most {MAX_BUNDLE_MEMBERS}")
         tmp.seek(0)
-        with zipfile.ZipFile(tmp) as zf:
+        try:
+            zf = zipfile.ZipFile(tmp)
+        except ZIP_ERRORS as exc:
+            raise ApiError(400, f"the bundle is not a readable zip file ({exc})") from None
+        with zf:
             check_zip_members(zf, "bundle.zip")
             names = set(zf.namelist())
             if "capture.json" not in names:
