@@ -9,7 +9,7 @@ from django.contrib import admin, messages
 from django.contrib.admin.forms import AdminAuthenticationForm
 
 from . import pipeline
-from .models import (ArmTask, Calibration, Camera, CaptureImage, CaptureSession, Clinic, Comparison, Job, Member,
+from .models import (ArmTask, AuditEvent, Calibration, Camera, CaptureImage, CaptureSession, Clinic, Comparison, Job, Member,
                      Patient, Reconstruction, Rig, RigKey, StabilityCheck, TestField, Visit)
 
 
@@ -164,6 +164,29 @@ class ReconstructionAdmin(admin.ModelAdmin):
 @admin.register(Comparison)
 class ComparisonAdmin(admin.ModelAdmin):
     list_display = ["earlier", "later", "created"]
+
+
+@admin.register(AuditEvent)
+class AuditEventAdmin(admin.ModelAdmin):
+    """The audit trail, to read: the application only ever appends to it (``clinic/audit.py``)."""
+
+    list_display = ["time", "username", "rig_serial", "action", "patient_id", "object_type", "object_id", "method",
+                    "path", "status", "remote_addr"]
+    list_filter = ["action", "clinic", "time"]
+    search_fields = ["=patient_id", "username", "rig_serial", "path", "remote_addr"]
+    date_hierarchy = "time"
+
+    def has_view_permission(self, request, obj=None):
+        return request.user.is_active and request.user.is_superuser
+
+    def has_add_permission(self, request):
+        return False
+
+    def has_change_permission(self, request, obj=None):
+        return False
+
+    def has_delete_permission(self, request, obj=None):
+        return False
 
 
 def _superusers_only(request):
