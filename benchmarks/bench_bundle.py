@@ -30,10 +30,11 @@ def main() -> int:
     args = ap.parse_args()
     sys.path.insert(0, args.engine or str(Path(__file__).resolve().parents[1]))
     sys.path.insert(1, str(Path(__file__).resolve().parent))
-    from bench_simulate import machine
     from recon_engine import bundle
     from recon_engine.calibration import calibrate
     from recon_engine.formats import read_capture, read_rig, read_testfield
+
+    from bench_simulate import machine  # after the engine: it puts this checkout first on sys.path
 
     scenario = Path(args.scenario)
     if not (scenario / "rig.json").exists():
@@ -62,7 +63,7 @@ def main() -> int:
     t0, c0 = time.perf_counter(), time.process_time()
     calibrate(caps, rig, tf)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    print(f"Machine: {machine()}; engine {args.engine or 'this checkout'}")
+    print(f"Machine: {machine()}; engine {Path(bundle.__file__).parents[1]}")
     print(f"{len(rig.camera_ids)} cameras, poses {[c.pose for c in caps]}: calibration {wall:.1f} s wall, "
           f"{cpu:.1f} s CPU, peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
     for i, (w, c, pb, sol) in enumerate(passes, 1):
