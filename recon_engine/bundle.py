@@ -148,6 +148,7 @@ class Layout:
 
 
 def layout(n_cams: int, n_poses: int, n_points: int, free_cam: np.ndarray, free_pose: np.ndarray) -> Layout:
+    """The :class:`Layout` of ``n_cams`` cameras (``free_cam``: which of :data:`CAM_NAMES` are unknown), poses, corners."""
     n_cam_free = int(free_cam.sum())
     cam_cols = np.full((n_cams, N_CAM), -1)
     cam_cols[:, free_cam] = np.arange(n_cams)[:, None] * n_cam_free + np.arange(n_cam_free)
