@@ -354,18 +354,19 @@ def patient_posterior(rig: Rig, calibration: Calibration) -> dict | None:
     stands) from the centre of all cameras to the centre of the cameras of
     the arms the back faces; None when the rig does not say.
     """
-    if not rig.back_towards:
+    towards = getattr(rig, "back_towards", ())  # a rig-like object without a footplate says nothing
+    if not towards:
         return None
     centres = {cid: np.asarray(c.C, float) for cid, c in calibration.cameras.items()}
     every = [centres[c] for c in rig.camera_ids if c in centres]
-    back = [centres[c] for a in rig.arms if a.id in rig.back_towards for c in a.cameras if c in centres]
+    back = [centres[c] for a in rig.arms if a.id in towards for c in a.cameras if c in centres]
     if not every or not back:
         return None
     v = np.mean(back, axis=0) - np.mean(every, axis=0)
     v[2] = 0.0
     if np.linalg.norm(v) < 1e-6:
         return None
-    return {"posterior": (v / np.linalg.norm(v)).tolist(), "back_towards": list(rig.back_towards),
+    return {"posterior": (v / np.linalg.norm(v)).tolist(), "back_towards": list(towards),
             "source": "rig"}
 
 

@@ -127,3 +127,15 @@ def test_arms_cut_off_from_the_reference_fail_the_torso_and_are_named(torso_scen
     rep = register_arms(surfaces, reports, {}, rig, cal)["report"]
     assert rep["status"] == "failed"
     assert any("registration failed" in p and "arms C, D" in p for p in rep["problems"]), rep["problems"]
+
+
+def test_the_torso_file_carries_where_the_patients_back_faces(torso_out):
+    # the simulated patient faces -Y; the rig's footplate (rig.json's patient.back_towards) says so, and the
+    # torso file carries it for `torsoscan indices`
+    from analysis.torso import read_torso
+
+    rep = json.loads((torso_out / "report.json").read_text())
+    assert rep["patient"]["back_towards"] == ["A", "B"]
+    assert np.asarray(rep["patient"]["posterior"]) @ [0.0, 1.0, 0.0] > 0.99
+    torso = read_torso(torso_out / "torso.ply")
+    assert torso.patient["back_towards"] == ["A", "B"] and torso.patient["posterior"][1] > 0.99
