@@ -45,7 +45,10 @@ def database_from_url(url, name="DATABASE_URL"):
             raise ImproperlyConfigured(f"{name}={url!r}: use sqlite:///relative/path or sqlite:////absolute/path")
         path = path[1:]  # sqlite:///rel/path -> rel/path, sqlite:////abs/path -> /abs/path
         file = Path(path) if Path(path).is_absolute() else BASE_DIR / path
-        return {"ENGINE": "django.db.backends.sqlite3", "NAME": str(file)}
+        # Waits for another thread's write instead of failing at once ("database is locked"), and takes the
+        # write lock when a transaction begins: a read-then-write transaction cannot deadlock with another.
+        return {"ENGINE": "django.db.backends.sqlite3", "NAME": str(file),
+                "OPTIONS": {"timeout": envint("SQLITE_TIMEOUT", 30), "transaction_mode": "IMMEDIATE"}}
     if parsed.scheme in ("postgres", "postgresql", "pgsql"):
         dbname = unquote(parsed.path.lstrip("/"))
         if not dbname:

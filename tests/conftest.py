@@ -75,6 +75,22 @@ def torso_scenario(tmp_path_factory):
 
 # --- the clinic service: a few named users, one with no access ---------------------
 
+@pytest.fixture(scope="session")
+def django_db_modify_db_settings(django_db_modify_db_settings_parallel_suffix, tmp_path_factory):
+    """The SQLite test database in a file, as the demo's, not Django's shared in-memory one.
+
+    With an in-memory database the live server's request threads share the
+    test thread's connection object; two requests in flight at once (a page
+    and its pictures) then leave its transaction state broken for the tests
+    that follow. A file gives each thread its own connection.
+    """
+    from django.conf import settings
+
+    db = settings.DATABASES["default"]
+    if db["ENGINE"].endswith("sqlite3"):
+        db.setdefault("TEST", {})["NAME"] = str(tmp_path_factory.mktemp("database") / "test.sqlite3")
+
+
 @pytest.fixture(autouse=True)
 def _media_in_tmp(settings, tmp_path):
     """Each test's stored files in its own folder (never the repository's var/)."""
