@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
+from analysis.cli import main
 from analysis.synthetic import synthetic_back
-from recon_engine.cli import main
 from recon_engine.surface import read_ply, write_ply
 
 
@@ -70,3 +70,16 @@ def test_too_few_points(tmp_path, capsys):
 def test_bad_landmark_argument(plys, tmp_path, capsys):
     assert main(["indices", "--out", str(tmp_path / "i.json"), "--vp", "1,2", str(plys / "a.ply")]) != 0
     assert "--vp" in capsys.readouterr().err
+
+
+def test_torsoscan_has_every_command_and_the_engines_parser_only_its_own():
+    from analysis.cli import build_parser
+    from recon_engine import cli as engine_cli
+
+    def commands(parser):
+        return set(next(a for a in parser._actions if a.dest == "command").choices)
+
+    engine = {"simulate", "calibrate", "stability", "reconstruct", "reconstruct-arm"}
+    assert commands(engine_cli.build_parser()) == engine
+    assert commands(build_parser()) == engine | {"compare", "indices"}
+
