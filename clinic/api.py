@@ -30,7 +30,7 @@ from django.conf import settings
 from django.core.exceptions import RequestDataTooBig
 from django.core.files import File
 from django.core.files.storage import default_storage
-from django.db import DatabaseError, IntegrityError, InterfaceError, OperationalError, transaction
+from django.db import DatabaseError, IntegrityError, InterfaceError, OperationalError, connection, transaction
 from django.http import FileResponse
 from django.shortcuts import get_object_or_404
 from django.utils import timezone
@@ -417,17 +417,40 @@ def put_image(request, session_id: str, camera: str):
             return _respond(request, {"camera": camera, "sha256": digest, "size": size, "stored": "already"}, 200)
         _check_image(tmp, rig_from_dict(s.rig.description, f"rig {s.rig.serial}"), image, image.file_name)
         name = _store(image_path(image, image.file_name), tmp)
-    # if this fails (the database is down), the file stays: the commit may have happened; a retry stores again
-    with transaction.atomic():
-        n = CaptureImage.objects.filter(pk=image.pk, file="", session__state=CaptureSession.OPEN).update(
-            file=name, size=size, received=timezone.now())
-    if not n:  # another PUT of the same image won, or the session was finalized meanwhile
-        default_storage.delete(name)
-        s.refresh_from_db()
-        if s.state != s.OPEN:
+    try:
+        outcome = _name_image(s, image, name, size)
+    except (OperationalError, InterfaceError):
+        # the connection was lost (a database restart, a network cut): once more on a new one. If the first
+        # attempt committed after all, this one finds the row naming our file. If this fails too, the file
+        # stays (a row may name it); the answer is 503 and the retry stores again (check_files finds the orphan).
+        log.warning("session %s camera %s: database connection lost after storing %s; trying again", s.uid,
+                    camera, name)
+        connection.close()
+        outcome = _name_image(s, image, name, size)
+    if outcome != "now":  # another PUT of the same image won, or the session was finalized meanwhile
+        _discard_unreferenced([name])
+        if outcome == "finalized":
             raise ApiError(409, f"session {s.uid} was finalized meanwhile; the image was not stored")
         return _respond(request, {"camera": camera, "sha256": digest, "size": size, "stored": "already"}, 200)
     return _respond(request, {"camera": camera, "sha256": digest, "size": size, "stored": "now"}, 201)
+
+
+def _name_image(session, image, name, size) -> str:
+    """Point the image's row at the stored file ``name``: "now", or "already" (another upload's file is named),
+    or "finalized" (the session closed meanwhile).
+
+    The session's row is locked first (finalizing locks it too), so two uploads of one image take turns and
+    the second sees the first's file. (A condition through a join, ``session__state=...``, is a subquery
+    that PostgreSQL does not re-check after waiting for the first: both would "win", one file orphaned.)
+    """
+    with transaction.atomic():
+        state = CaptureSession.objects.select_for_update().values_list("state", flat=True).get(pk=session.pk)
+        if state != CaptureSession.OPEN:
+            return "finalized"
+        n = CaptureImage.objects.filter(pk=image.pk, file="").update(file=name, size=size, received=timezone.now())
+    if n or CaptureImage.objects.filter(pk=image.pk, file=name).exists():  # ours, maybe by a lost first attempt
+        return "now"
+    return "already"
 
 
 @api.post("/sessions/{session_id}/finalize", auth=RigKeyAuth(), tags=["rig"])
