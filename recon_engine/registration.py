@@ -51,18 +51,6 @@ class ICPatchConfig:
     # held by a prior of 1e-4 0.0162, of 3e-5 0.0156, rigid 0.0125 (Open3D's multiway 0.0128). Tiny preset, free:
     # arms C and D took scales of 0.9972 and 0.9970 (3 mm at 1 m) and the torso's RMS was 1.06 mm (rigid 0.53)
     estimate_scale: bool = False
-    # a priori standard deviation of each arm's scale about 1 in the multiple registration when the scale is
-    # estimated (None: free); the pseudo-observation keeps the scale near the calibration's
-    scale_sigma: float | None = None
-    # systematic error of each neighbouring pair's relative placement, 1 sigma (scale, rotation [rad], translation
-    # [mm]; None: none). Each arm's surface carries its own cameras' calibration errors, so two surfaces fit each
-    # other best at a placement off the true one by more than their points' noise allows; the multiple
-    # registration then holds each pair at most this firmly, and spreads the loop's misclosure accordingly
-    pair_sigma: tuple | None = None
-    # or (mm^2, None: not used): that error's covariance is this times the inverse of the pair's point-to-point
-    # normal matrix (the information of Open3D's pose graph edges): a pair is held more firmly the more points
-    # and the wider its overlap, alike in every direction. Takes precedence over pair_sigma
-    pair_stiffness: float | None = None
     # mm (None: off): point-patch pairs whose point lies this close to its own surface's rim, or whose foot this
     # close to the other surface's rim, are not used in the multiple registration. At the true placement the
     # points within 10 mm of a rim lie 1-11 um below the skin and the other's patches there 2-8 um (visit0-a).
@@ -107,9 +95,6 @@ class ICPatchConfig:
     # 0.44 mm points), and 15-34 where C and D slid 6.6-76 mm after the weak pair B-C dropped out. 6 lies
     # between, and stays far above what the paper scale needs (limit there ~0.43 mm)
     max_position_sigma_factor: float = 6.0
-    # weight each normal distance by the precision of the point and of the patch along the normal (the arm
-    # surfaces' sigma_normal_mm, from the intersection's covariance): 1 / (sigma_point^2 + sigma_patch^2)
-    weighted: bool = False
     threads: int = 0  # the pairs' closest-patch queries run on this many threads; 0: one per core
 
 
@@ -178,9 +163,6 @@ class PatchIndex:
         self.anchor = P[F[:, 0]]
         # unit skin normals at the vertices: with them a patch stands for the curved skin, not its chord
         self.vertex_normals = None if vertex_normals is None else np.asarray(vertex_normals, dtype=float)
-        # the vertices' precision along the skin's normal (mm), where the surface has it
-        vs = (surface.data or {}).get("sigma_normal_mm")
-        self.vertex_sigma = None if vs is None else np.asarray(vs, dtype=float)
 
     @cached_property
     def rim_tree(self):
@@ -207,11 +189,10 @@ class PatchIndex:
 
     def closest(self, x: np.ndarray, margin: float):
         """Patch id (N,), whether ``x`` projects into its interior (N,), patch normal (N, 3), the point of
-        the patch under ``x`` (N, 3), the distance of ``x`` to the surface (N,, mm) and the patch's precision
-        along its normal there (N,, mm; NaN where the surface has no ``sigma_normal_mm``)."""
+        the patch under ``x`` (N, 3) and the distance of ``x`` to the surface (N,, mm)."""
         if len(x) == 0:
             z = np.zeros((0, 3))
-            return np.zeros(0, np.int64), np.zeros(0, bool), z, z, np.zeros(0), np.zeros(0)
+            return np.zeros(0, np.int64), np.zeros(0, bool), z, z, np.zeros(0)
         ans = self.scene.compute_closest_points(o3d.core.Tensor(np.asarray(x, np.float32)))
         gap = np.linalg.norm(np.asarray(x, dtype=float) - ans["points"].numpy(), axis=1)
         pid = ans["primitive_ids"].numpy().astype(np.int64)
@@ -234,9 +215,7 @@ class PatchIndex:
             # and the curved patch's normal there (the vertex normals average several patches: less noisy)
             n = np.sum(w[:, :, None] * NV, axis=1)
             n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        sigma = (np.full(len(pid), np.nan) if self.vertex_sigma is None
-                 else np.sum(np.clip(w, 0, 1) * self.vertex_sigma[self.surface.faces[pid]], axis=1))
-        return pid, inside, n, p0, gap, sigma
+        return pid, inside, n, p0, gap
 
 
 def patch_indices(surfaces: dict, cfg: ICPatchConfig) -> dict:
@@ -280,7 +259,7 @@ def _count_pairs(points, normals, index, transform, max_distance, cfg, sample: i
 def correspondences(points, normals, index: PatchIndex, transform: Transform, max_distance: float,
                     cfg: ICPatchConfig, near: dict | None = None, rim_distance: np.ndarray | None = None):
     """Accepted point–patch pairs under ``transform``: (point ids, patch normal, point of the patch under the
-    point, normal distance, patch precision along its normal (mm, NaN if unknown)).
+    point, normal distance (mm)), the last three in the fixed surface's frame.
 
     ``near`` is an optional dict kept by the caller between calls on the same
     points and patches: points that were far from the surface at a full
@@ -298,7 +277,7 @@ def correspondences(points, normals, index: PatchIndex, transform: Transform, ma
             near["gap"], near["at"], moved = None, transform, 0.0  # (re)start: query every point
         else:
             sel = np.nonzero(near["gap"] - moved <= max_distance)[0]
-    pid, inside, n, p0, gap, patch_sigma = index.closest(x[sel], cfg.edge_margin)
+    pid, inside, n, p0, gap = index.closest(x[sel], cfg.edge_margin)
     if near is not None and near["gap"] is None:
         near["gap"] = gap
     d = np.sum((x[sel] - p0) * n, axis=1)
@@ -313,7 +292,7 @@ def correspondences(points, normals, index: PatchIndex, transform: Transform, ma
             k = np.nonzero(ok)[0]  # only the pairs still accepted are looked up
             ok[k] = index.rim_tree.query(p0[k], distance_upper_bound=cfg.rim_margin_mm)[0] >= cfg.rim_margin_mm
     k = np.nonzero(ok)[0]
-    return sel[k], n[k], p0[k], d[k], patch_sigma[k]
+    return sel[k], n[k], p0[k], d[k]
 
 
 def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None = None,
@@ -338,7 +317,7 @@ def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None
     for it in range(1, cfg.max_iterations + 1):
         if it <= cfg.freeze_after:
             pairs_now = correspondences(X, moving.normals, index, T, dist, cfg, near)
-        idx, n, p0, _, _ = pairs_now
+        idx, n, p0, _ = pairs_now
         d = np.sum((T.apply(X[idx]) - p0) * n, axis=1)
         if len(idx) < 7:
             raise ValueError(f"ICPatch: only {len(idx)} point-patch pairs within {dist:.1f} mm: "
@@ -363,7 +342,7 @@ def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None
                           and abs(ds) < cfg.tol_scale):
             converged = True
             break
-    idx, n, p0, d, _ = correspondences(X, moving.normals, index, T, dist, cfg, near)
+    idx, n, p0, d = correspondences(X, moving.normals, index, T, dist, cfg, near)
     Y = T.apply(X[idx]) - T.apply(centre)
     J = np.column_stack([np.sum(n * Y, axis=1), np.cross(Y, n), n])
     dof = max(len(idx) - (7 if cfg.estimate_scale else 6), 1)
@@ -450,36 +429,6 @@ def chain_initial(surfaces: dict, order: list, reference: str, cfg: ICPatchConfi
     return T, results
 
 
-def _pair_weights(moving: PointSurface, sample: np.ndarray, weighted: bool):
-    """``f(point ids, patch sigmas) -> weights`` of a pair's normal distances: ones, or with ``weighted``
-    ``1 / (sigma_point^2 + sigma_patch^2)`` (mm^-2) where both surfaces carry their precision along the normal."""
-    sig = (moving.data or {}).get("sigma_normal_mm")
-    if not weighted or sig is None:
-        return lambda idx, patch_sigma: np.ones(len(idx))
-    sig = np.asarray(sig, dtype=float)[sample]
-
-    def f(idx, patch_sigma):
-        var = sig[idx] ** 2 + patch_sigma ** 2
-        return np.where(np.isfinite(var) & (var > 0), 1.0 / np.where(var > 0, var, 1.0), 1.0)
-    return f
-
-
-def point_normal_matrix(Y: np.ndarray) -> np.ndarray:
-    """``sum J^T J`` (7×7) of the 3D displacements ``ds·Y + w × Y + t`` of points ``Y`` (mm, about the centre of
-    the increments) by (scale, rotation, translation): the point-to-point information of a placement."""
-    Y = np.asarray(Y, dtype=float)
-    YY = Y.T @ Y
-    r2 = float(np.trace(YY))
-    S = Y.sum(axis=0)
-    G = np.zeros((7, 7))
-    G[0, 0] = r2
-    G[0, 4:7] = S
-    G[1:4, 1:4] = r2 * np.eye(3) - YY
-    G[1:4, 4:7] = np.array([[0, -S[2], S[1]], [S[2], 0, -S[0]], [-S[1], S[0], 0]])
-    G[4:7, 4:7] = len(Y) * np.eye(3)
-    return np.triu(G) + np.triu(G, 1).T
-
-
 def _pair_blocks(a, b, x, foot, n, col, centres) -> list:
     """Jacobian blocks ``(column, J)`` of a pair's normal distances for its free arms.
 
@@ -534,7 +483,6 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         index[(a, b)], which[(a, b)] = choose_patches(
             surfaces[a].points[idx_all], surfaces[a].normals[idx_all], indices[b],
             T[b].inverse().compose(T[a]), dist[(a, b)], cfg)
-    weights = {p: _pair_weights(surfaces[p[0]], sample[p], cfg.weighted) for p in pairs}
     converged = False
     it = 0
     frozen = {}
@@ -544,13 +492,9 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
                     for p in pairs}
     weak = set()
     scale_weight = 0.0 if cfg.estimate_scale else 1e12
-    s0_prior = 1.0 if cfg.weighted else 0.05  # unit-weight sigma before the first iteration (mm when unweighted)
-    forward = neighbour_pairs(arms)
-    canon = {**{p: p for p in forward}, **{(b, a): (a, b) for a, b in forward}}
     for it in range(1, cfg.max_iterations + 1):
         N = np.zeros((n_par, n_par))
         rhs = np.zeros(n_par)
-        pair_error = {}  # per neighbouring pair: normal-equation blocks of its systematic relative placement error
         centres = {a: T[a].apply(surfaces[a].points.mean(axis=0)) for a in arms}
         stats = {}
         if it <= cfg.freeze_after:
@@ -567,11 +511,11 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             rel = T[b].inverse().compose(T[a])
             # after a few iterations the pairs are kept, so the adjustment converges instead of
             # jittering as points at the acceptance limit come and go
-            idx, n_loc, p0_loc, _, patch_sigma = frozen[(a, b)]
+            idx, n_loc, p0_loc, _ = frozen[(a, b)]
             if len(idx) < cfg.min_pairs:
                 # a pair that barely overlaps says nothing reliable: it is left out (and reported)
                 weak.add((a, b))
-                stats[(a, b)] = (np.zeros(0), 0, len(idx_all), np.zeros(0))
+                stats[(a, b)] = (np.zeros(0), 0, len(idx_all))
                 continue
             weak.discard((a, b))
             d_loc = np.sum((rel.apply(X[idx]) - p0_loc) * n_loc, axis=1)
@@ -579,43 +523,14 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             n = T[b].rotate(n_loc)
             d = d_loc * T[b].scale
             foot = x - d[:, None] * n
-            wt = weights[(a, b)](idx, patch_sigma)
-            stats[(a, b)] = (d, len(idx), len(idx_all), wt)
+            stats[(a, b)] = (d, len(idx), len(idx_all))
             blocks = _pair_blocks(a, b, x, foot, n, col, centres)
             for ca, Ja in blocks:
-                rhs[ca:ca + 7] -= Ja.T @ (wt * d)
+                rhs[ca:ca + 7] -= Ja.T @ d
                 for cb, Jb in blocks:
-                    N[ca:ca + 7, cb:cb + 7] += Ja.T @ (wt[:, None] * Jb)
-            if cfg.pair_sigma is not None or cfg.pair_stiffness is not None:
-                # the pair's error moves its first arm against its second: the same columns as that arm's own
-                key = canon[(a, b)]
-                Je = _pair_blocks(a, b, x, foot, n, {key[0]: 0}, centres)[0][1]
-                Nxe, Nee, re, G = pair_error.setdefault(key, (np.zeros((n_par, 7)), np.zeros((7, 7)), np.zeros(7),
-                                                              np.zeros((7, 7))))
-                for ca, Ja in blocks:
-                    Nxe[ca:ca + 7] += Ja.T @ (wt[:, None] * Je)
-                Nee += Je.T @ (wt[:, None] * Je)
-                re -= Je.T @ (wt * d)
-                G += point_normal_matrix((x if a == key[0] else foot) - centres[key[0]])
-        for Nxe, Nee, re, G in pair_error.values():
-            # each pair's error is a nuisance with an a priori covariance, eliminated from the normal equations
-            if cfg.pair_stiffness is not None:
-                W = s0_prior ** 2 / cfg.pair_stiffness * G
-            else:
-                s_s, s_r, s_t = cfg.pair_sigma
-                W = np.diag(s0_prior ** 2 / np.array([s_s, s_r, s_r, s_r, s_t, s_t, s_t]) ** 2)
-            if not cfg.estimate_scale:
-                W[0, 0] += 1e12
-            K = np.linalg.solve(Nee + W, Nxe.T).T  # Nxe (Nee + W)^-1
-            N -= K @ Nxe.T
-            rhs -= K @ re
+                    N[ca:ca + 7, cb:cb + 7] += Ja.T @ Jb
         for a in free:
             N[col[a], col[a]] += scale_weight
-            if cfg.estimate_scale and cfg.scale_sigma:
-                # pseudo-observation scale = 1 +- scale_sigma, weighted against the normal distances' unit weight
-                w_s = s0_prior ** 2 / cfg.scale_sigma ** 2
-                N[col[a], col[a]] += w_s
-                rhs[col[a]] -= w_s * (T[a].scale - 1.0)
         # every arm must hang on the reference through pairs that overlap
         linked, grew = {reference}, True
         while grew:
@@ -631,9 +546,8 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         # corrections far below their own standard deviations also count as vanished: with few
         # points the set of pairs keeps changing a little and the corrections jitter at that level
         n_obs = sum(len(st[0]) for st in stats.values())
-        s0_it = np.sqrt(sum(float(np.sum(st[3] * st[0] ** 2)) for st in stats.values()) / max(n_obs - n_par, 1))
+        s0_it = np.sqrt(sum(float(np.sum(st[0] ** 2)) for st in stats.values()) / max(n_obs - n_par, 1))
         sd = s0_it * np.sqrt(np.abs(np.diag(np.linalg.inv(N))))
-        s0_prior = float(s0_it) if s0_it > 0 else s0_prior
         negligible = bool(np.all(np.abs(dx) <= cfg.negligible_sigma * np.maximum(sd, 1e-15)))
         biggest = 0.0
         for a in free:
@@ -643,7 +557,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             T[a] = Transform(T[a].scale * (1 + ds), dR @ T[a].R, (1 + ds) * dR @ (T[a].t - c) + c + dt)
             biggest = max(biggest, np.linalg.norm(w) / cfg.tol_rotation_rad, np.linalg.norm(dt) / cfg.tol_translation_mm,
                           abs(ds) / cfg.tol_scale)
-        for p, (d, _, _, _) in stats.items():
+        for p, (d, _, _) in stats.items():
             if len(d):
                 dist[p] = max(cfg.min_distance_mm, min(dist[p], cfg.tighten_k * float(np.sqrt(np.mean(d ** 2)))))
         if biggest < 1.0 or negligible:
@@ -651,7 +565,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             break
     # figures at the solution; covariance from the last normal equations
     dof = max(sum(len(s[0]) for s in stats.values()) - n_par, 1)
-    s0 = float(np.sqrt(sum(float(np.sum(s[3] * s[0] ** 2)) for s in stats.values()) / dof))
+    s0 = float(np.sqrt(sum(float(np.sum(s[0] ** 2)) for s in stats.values()) / dof))
     cov = s0 ** 2 * np.linalg.inv(N)
     names = ("scale", "omega_rad", "phi_rad", "kappa_rad", "tx_mm", "ty_mm", "tz_mm")
     sig = {a: dict(zip(names, map(float, np.sqrt(np.diag(cov)[col[a]:col[a] + 7])))) for a in free}
@@ -674,14 +588,12 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         foot_b = xb - np.sum((xb - p0_loc) * n_loc, axis=1)[:, None] * n_loc
         n = T[b].rotate(smooth_normals(surfaces[b], foot_b, trees[b]))
         x, foot = T[a].apply(X), T[b].apply(foot_b)
-        wt = stats[(a, b)][3][::k]
         blocks = _pair_blocks(a, b, x, foot, n, col, centres)
         for ca, Ja in blocks:
             for cb, Jb in blocks:
-                Ng[ca:ca + 7, cb:cb + 7] += k * (Ja.T @ (wt[:, None] * Jb))
+                Ng[ca:ca + 7, cb:cb + 7] += k * (Ja.T @ Jb)
     for a in free:
-        Ng[col[a], col[a]] += scale_weight + (s0 ** 2 / cfg.scale_sigma ** 2
-                                              if cfg.estimate_scale and cfg.scale_sigma else 0.0)
+        Ng[col[a], col[a]] += scale_weight
     cov_g = s0 ** 2 * np.linalg.pinv(Ng)
     strength = {a: arm_strength(cov_g[col[a]:col[a] + 7, col[a]:col[a] + 7], T[a].apply(surfaces[a].points),
                                 centres[a]) for a in free}
@@ -692,7 +604,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
     # frozen set choose observations; they do not make the rest of the overlap unmatched)
     fit_cfg = replace(cfg, rim_margin_mm=None)
     forward = set(neighbour_pairs(arms))
-    for (a, b), (d_adj, k_adj, n_all, _) in stats.items():
+    for (a, b), (d_adj, k_adj, n_all) in stats.items():
         if (a, b) not in forward:
             continue
         idx_all = sample[(a, b)]
@@ -702,7 +614,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         over_idx = correspondences(X, None, index[(a, b)], rel, cfg.overlap_distance_mm, loose)[0]
         over = len(over_idx)
         if k_adj:
-            fit_idx, _, _, d, _ = correspondences(X, surfaces[a].normals[idx_all], index[(a, b)], rel, dist[(a, b)],
+            fit_idx, _, _, d = correspondences(X, surfaces[a].normals[idx_all], index[(a, b)], rel, dist[(a, b)],
                                                   fit_cfg)
             d = d * T[b].scale
         else:  # left out of the adjustment: not presented as fitting
@@ -770,7 +682,7 @@ def pair_fit(moving: PointSurface, fixed: PointSurface, T_moving: Transform, T_f
     cfg = cfg or ICPatchConfig()
     rel = T_fixed.inverse().compose(T_moving)
     # all patches: the same measure whichever patches a registration used
-    idx, _, _, d, _ = correspondences(moving.points, moving.normals, PatchIndex(fixed), rel,
+    idx, _, _, d = correspondences(moving.points, moving.normals, PatchIndex(fixed), rel,
                                    max_distance_mm, cfg)
     d = d * T_fixed.scale
     return {"average_normal_distance_mm": float(np.mean(np.abs(d))) if len(d) else None,
