@@ -61,6 +61,9 @@ def database_from_url(url, name="DATABASE_URL"):
             "HOST": parsed.hostname or "",
             "PORT": str(parsed.port or ""),
             "CONN_MAX_AGE": envint("DB_CONN_MAX_AGE", 60),
+            # a kept connection is checked before a request's first query: after a database restart it is
+            # dead, and the request reconnects instead of failing
+            "CONN_HEALTH_CHECKS": True,
         }
     raise ImproperlyConfigured(f"{name}={url!r}: unsupported scheme {parsed.scheme!r} (use sqlite or postgres)")
 

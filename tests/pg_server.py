@@ -72,7 +72,7 @@ def template_database(env) -> str:
 
 
 class Server:
-    def __init__(self, tmp_path: Path, **env):
+    def __init__(self, tmp_path: Path, threads: int = 4, **env):
         require_postgres("postgres")
         self.var, self.logs = tmp_path / "var", tmp_path / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)
@@ -88,7 +88,7 @@ class Server:
         # threads, each keeping its own database connection between requests (CONN_MAX_AGE), as in production
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "gunicorn", "clinic.wsgi:application", "--bind", f"127.0.0.1:{self.port}",
-             "--workers", "1", "--worker-class", "gthread", "--threads", "4", "--timeout", "60"],
+             "--workers", "1", "--worker-class", "gthread", "--threads", str(threads), "--timeout", "60"],
             cwd=ROOT, env=self.env, stdout=open(self.logs / "server.log", "w"), stderr=subprocess.STDOUT)
         wait_for_port(self.port)
         self.api = HttpApi(f"http://127.0.0.1:{self.port}")
@@ -119,8 +119,8 @@ class Server:
 
 
 @contextmanager
-def pg_server(tmp_path: Path, **env):
-    server = Server(tmp_path, **env)
+def pg_server(tmp_path: Path, threads: int = 4, **env):
+    server = Server(tmp_path, threads, **env)
     try:
         yield server
     except BaseException:
