@@ -50,6 +50,7 @@ from .models import (CaptureImage, CaptureSession, Job, Member, Patient, Reconst
 
 CHUNK = 1 << 20
 RETRY_AFTER_SECONDS = 30  # what a 503 asks the rig to wait before retrying
+KEY_USE_RESOLUTION = dt.timedelta(minutes=1)  # how stale a rig key's "last used" may be
 MAX_BUNDLE_MEMBERS = 1000  # a capture holds a manifest and one image per camera; a zip's directory is parsed whole
 
 log = logging.getLogger(__name__)
@@ -73,7 +74,10 @@ class RigKeyAuth(HttpBearer):
         key = RigKey.lookup(token)
         if key is None:
             return None
-        RigKey.objects.filter(pk=key.pk).update(last_used=timezone.now())
+        now = timezone.now()
+        # "last used" to the minute: a rig polling its job every second must not write on every poll
+        if key.last_used is None or now - key.last_used >= KEY_USE_RESOLUTION:
+            RigKey.objects.filter(pk=key.pk).update(last_used=now)
         request.rig = key.rig
         return key.rig
 

@@ -48,6 +48,12 @@ PATIENT_PATHS = {
     Reconstruction: "session__visit__patient",
     Comparison: "later__session__visit__patient",
 }
+# Status polls (the API's session and job status, which a rig or a page asks for every few seconds) are
+# recorded once per caller and object in this many seconds: a poll that finds its view already recorded writes
+# nothing. Every other view is recorded each time.
+POLLS = {("api", "session_status"), ("api", "job_status")}
+POLL_SECONDS = 600
+
 # Their saves and deletions are recorded (jobs, images and arm tasks change through queryset updates, which send
 # no signal; the middleware records the requests that cause them).
 SIGNALLED = (Patient, Visit, CaptureSession, Reconstruction, Comparison)
@@ -198,8 +204,22 @@ def record_request(request, response, current):
     object_type, object_id, patient_id, clinic_id = found
     if patient_id is None and object_type != "patient":
         return  # a calibration job, a test-field session: no patient's data
+    if (match.namespace, match.url_name) in POLLS and _polled_recently(request, object_type, object_id):
+        return
     record(action, request=request, patient_id=patient_id, clinic_id=clinic_id, object_type=object_type,
            object_id=object_id, status=response.status_code)
+
+
+def _polled_recently(request, object_type, object_id) -> bool:
+    """Whether the same caller's view of the same object was recorded in the last POLL_SECONDS (a read)."""
+    from datetime import timedelta
+
+    from django.utils import timezone
+
+    rig = getattr(request, "rig", None)
+    who = {"rig_serial": rig.serial, "user": None} if rig is not None else {"user": request.user}
+    return AuditEvent.objects.filter(action=AuditEvent.VIEW, object_type=object_type, object_id=str(object_id),
+                                     time__gte=timezone.now() - timedelta(seconds=POLL_SECONDS), **who).exists()
 
 
 class AuditMiddleware:
