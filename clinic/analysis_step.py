@@ -17,6 +17,7 @@ from pathlib import Path
 
 from django.core.files import File
 from django.core.files.storage import default_storage
+from django.db import IntegrityError, transaction
 
 from .models import Comparison, Reconstruction
 
@@ -104,7 +105,13 @@ def compare_reconstructions(earlier: Reconstruction, later: Reconstruction) -> C
             comparison.deformation.save(f"{earlier.pk}-{later.pk}-deformation.ply", File(fh), save=False)
         folder = f"comparisons/{earlier.pk}-{later.pk}"
         comparison.pictures = {Path(p).stem: _store(folder, Path(p)) for p in _paths(pics)}
-        comparison.save()
+        try:
+            with transaction.atomic():
+                comparison.save()
+        except IntegrityError:  # the pair was stored meanwhile (a page's job and a registration at once)
+            for name in [comparison.deformation.name, *comparison.pictures.values()]:
+                default_storage.delete(name)
+            return Comparison.objects.get(earlier=earlier, later=later)
     return comparison
 
 

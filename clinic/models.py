@@ -70,6 +70,8 @@ class Visit(models.Model):
                                   related_name="visits")
     reason = models.CharField(max_length=200, blank=True)
     notes = models.TextField(blank=True)
+    next_visit_due = models.DateField(null=True, blank=True,
+                                      help_text="When the patient should be seen again (the worklist's overdue list)")
     created = models.DateTimeField(default=timezone.now)
 
     class Meta:
@@ -218,20 +220,25 @@ class CaptureImage(models.Model):
 
 
 class Job(models.Model):
-    """The durable state of a calibration or reconstruction: what a technician looks at."""
+    """The durable state of a calibration, a reconstruction or a comparison: what a technician looks at."""
 
-    CALIBRATION, RECONSTRUCTION = "calibration", "reconstruction"
+    CALIBRATION, RECONSTRUCTION, COMPARISON = "calibration", "reconstruction", "comparison"
+    KINDS = [(CALIBRATION, "Calibration"), (RECONSTRUCTION, "Reconstruction"), (COMPARISON, "Comparison")]
     QUEUED, RUNNING, SUCCEEDED, FAILED = "queued", "running", "succeeded", "failed"
     STATES = [(QUEUED, "Queued"), (RUNNING, "Running"), (SUCCEEDED, "Succeeded"), (FAILED, "Failed")]
 
     uid = models.UUIDField(default=uuid.uuid4, unique=True, editable=False)
-    kind = models.CharField(max_length=20, choices=[(CALIBRATION, "Calibration"), (RECONSTRUCTION, "Reconstruction")])
+    kind = models.CharField(max_length=20, choices=KINDS)
     rig = models.ForeignKey(Rig, models.CASCADE, related_name="jobs")
     session = models.ForeignKey(CaptureSession, models.CASCADE, null=True, blank=True, related_name="jobs",
                                 help_text="The torso session (reconstruction) or the session that completed the set")
     sessions = models.ManyToManyField(CaptureSession, blank=True, related_name="calibration_jobs")
     calibration = models.ForeignKey("Calibration", models.PROTECT, null=True, blank=True, related_name="used_by",
                                     help_text="The calibration a reconstruction used")
+    # a comparison asked for on its page: the two torsos (the session is the later torso's, so the job is the
+    # patient's for the audit trail, an export and an erasure)
+    earlier = models.ForeignKey("Reconstruction", models.CASCADE, null=True, blank=True, related_name="+")
+    later = models.ForeignKey("Reconstruction", models.CASCADE, null=True, blank=True, related_name="+")
     state = models.CharField(max_length=16, choices=STATES, default=QUEUED)
     stage = models.CharField(max_length=40, blank=True)
     percent = models.PositiveSmallIntegerField(default=0)
@@ -249,6 +256,10 @@ class Job(models.Model):
 
     class Meta:
         ordering = ["-created"]
+        constraints = [
+            # two requests for the same comparison at once make one job (the second gets the first's)
+            models.UniqueConstraint(fields=["earlier", "later"], condition=models.Q(kind="comparison"),
+                                    name="one_comparison_job_per_pair")]
 
     def __str__(self):
         return f"{self.kind} job {self.uid} ({self.state})"

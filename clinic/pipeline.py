@@ -25,7 +25,7 @@ from django.conf import settings
 from django.core.files import File
 from django.core.files.base import ContentFile
 from django.core.files.storage import default_storage
-from django.db import InterfaceError, OperationalError, connection, transaction
+from django.db import IntegrityError, InterfaceError, OperationalError, connection, transaction
 from django.db.models import Exists, F, OuterRef, Q
 from django.utils import timezone
 
@@ -40,6 +40,7 @@ TRANSIENT = (OperationalError, InterfaceError, ConnectionError, TimeoutError)
 
 # where each stage's progress starts (percent)
 ARMS_START, REGISTRATION_START, ANALYSIS_START, COMPARISON_START = 5, 70, 85, 92
+COMPARISON_RUN_START = 10  # a comparison job: one step, no finer progress from the analysis
 
 
 class JobError(Exception):
@@ -136,7 +137,8 @@ def send(task, *args) -> bool:
 def _entry_task(job: Job):
     from . import tasks
 
-    return tasks.run_calibration if job.kind == Job.CALIBRATION else tasks.start_reconstruction
+    return {Job.CALIBRATION: tasks.run_calibration, Job.COMPARISON: tasks.run_comparison}.get(
+        job.kind, tasks.start_reconstruction)
 
 
 def dispatch(job: Job):
@@ -471,6 +473,62 @@ def compare_with_earlier(rec: Reconstruction) -> list:
     return [compare_reconstructions(earlier, rec) for earlier in earlier_reconstructions(rec)]
 
 
+# --- a comparison asked for on its page ------------------------------------------------
+
+def request_comparison(earlier: Reconstruction, later: Reconstruction) -> Job:
+    """The job comparing ``later`` with ``earlier``: the pair's existing one, or a new one, sent.
+
+    Two requests at once make one job: the pair is unique among comparison
+    jobs, and the request that loses the race takes the winner's job (only
+    the winner sends it). Without a broker the job runs here, before this
+    returns. Called outside a transaction (the pages run in autocommit), so
+    the row is committed before a worker looks for it; if the broker is down,
+    the sweeper sends it later.
+    """
+    job = comparison_job_of(earlier, later)
+    if job is not None:
+        return job
+    try:
+        with transaction.atomic():
+            job = Job.objects.create(kind=Job.COMPARISON, rig_id=later.session.rig_id, session_id=later.session_id,
+                                     earlier=earlier, later=later, stage="waiting for a worker")
+    except IntegrityError:
+        return Job.objects.get(kind=Job.COMPARISON, earlier=earlier, later=later)
+    send(_entry_task(job), job.pk)
+    job.refresh_from_db()
+    return job
+
+
+def comparison_job_of(earlier: Reconstruction, later: Reconstruction):
+    return Job.objects.filter(kind=Job.COMPARISON, earlier=earlier, later=later).first()
+
+
+def run_comparison(job_id: int) -> str:
+    """Register the later torso to the earlier one: the report, deformation map and its picture (once per pair)."""
+    from .analysis_step import compare_reconstructions
+
+    claim = _now()
+    if not Job.objects.filter(Q(pk=job_id, kind=Job.COMPARISON) & (Q(state=Job.QUEUED) | _lapsed())).update(
+            state=Job.RUNNING, stage="lining up the two torsos", percent=COMPARISON_RUN_START, claimed=claim,
+            lease_until=_lease(), started=claim, attempt=F("attempt") + 1):
+        return "not claimed"
+    job = Job.objects.select_related("earlier__session__rig__clinic", "later__session__rig__clinic").get(pk=job_id)
+    try:
+        with heartbeat(Job.objects.filter(pk=job_id, claimed=claim)):
+            # a pair the registration compared meanwhile is not computed again (nor stored twice)
+            compare_reconstructions(job.earlier, job.later)
+    except TRANSIENT:
+        Job.objects.filter(pk=job_id, claimed=claim).update(state=Job.QUEUED, claimed=None, lease_until=None)
+        raise
+    except Exception as exc:
+        fail(job_id, f"comparison: {_engine_error(exc)}", claimed=claim)
+        return "failed"
+    if not Job.objects.filter(pk=job_id, state=Job.RUNNING, claimed=claim).update(
+            state=Job.SUCCEEDED, stage="done", percent=100, finished=_now(), lease_until=None):
+        return "claim lost"
+    return "succeeded"
+
+
 # --- scheduled work ---------------------------------------------------------------
 
 def flag_rigs_for_recalibration(now=None) -> list:
@@ -530,8 +588,8 @@ def redispatch_stalled(older_than=None, now=None) -> list:
     for job in Job.objects.filter(state=Job.QUEUED, dispatched__lt=due):
         resend(Job.objects, job, _entry_task(job), job.pk)
     for job in Job.objects.filter(expired):
-        if job.kind == Job.CALIBRATION:
-            resend(Job.objects, job, tasks.run_calibration, job.pk)
+        if job.kind in (Job.CALIBRATION, Job.COMPARISON):  # one step each: it starts again
+            resend(Job.objects, job, _entry_task(job), job.pk)
         elif job.stage == "arms":  # died while starting, before the arms existed
             resend(Job.objects, job, tasks.start_reconstruction, job.pk)
         elif job.stage in REGISTRATION_STAGES:

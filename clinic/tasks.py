@@ -50,6 +50,12 @@ def register(job_id: int) -> str:
 
 
 @shared_task(**RETRY)
+def run_comparison(job_id: int) -> str:
+    """Two torsos compared, asked for on the comparison page (the page shows its progress)."""
+    return pipeline.run_comparison(job_id)
+
+
+@shared_task(**RETRY)
 def flag_rigs_for_recalibration() -> list:
     """Scheduled (Celery beat): rigs due for recalibration are flagged."""
     return pipeline.flag_rigs_for_recalibration()
@@ -60,3 +66,12 @@ def redispatch_stalled() -> list:
     """Scheduled (Celery beat): queued work the broker never got or lost, and steps whose worker died, are sent
     again. Not retried: the next beat is the retry."""
     return pipeline.redispatch_stalled()
+
+
+@shared_task
+def check_files() -> str:
+    """Scheduled (Celery beat): stored files no row references and rows whose file is missing are logged (removal
+    is left to ``manage.py check_files --remove-orphans``, run by a person)."""
+    from . import filecheck
+
+    return filecheck.check().summary()

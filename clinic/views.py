@@ -26,9 +26,10 @@ from django.core.files.base import ContentFile
 from django.http import FileResponse, Http404, HttpResponse, JsonResponse
 from django.shortcuts import get_object_or_404, redirect, render
 from django.urls import reverse
-from django.views.decorators.http import require_POST
+from django.utils import timezone
+from django.views.decorators.http import require_http_methods, require_POST
 
-from . import api, labels
+from . import api, labels, pipeline
 from .models import Comparison, Job, Member, Patient, Reconstruction, Rig, Visit, clinics_of
 
 # Who may do what. Actions the API has (re-running a job, issuing and revoking a rig's keys) are run through
@@ -109,6 +110,11 @@ def _good_recs():
 def _best(visit):
     """The visit's torso shown to clinicians: its latest good reconstruction (or None)."""
     return _good_recs().filter(session__visit=visit).order_by("-created").first()
+
+
+def _scan_jobs(visit):
+    """The jobs that made the visit's scans (the comparisons it is in are the comparison page's)."""
+    return Job.objects.filter(session__visit=visit).exclude(kind=Job.COMPARISON).order_by("-created")
 
 
 def _scans(patient) -> list:
@@ -355,7 +361,7 @@ def patient(request, patient_id):
     visits = []
     for v in p.visits.all():
         rec = _best(v)
-        jobs = Job.objects.filter(session__visit=v).order_by("-created")
+        jobs = _scan_jobs(v)
         visits.append({"visit": v, "rec": rec, "job": jobs.first(), "flat": _flat(rec.indices if rec else None),
                        "age": _age(p.date_of_birth, v.date), "quality": _quality(rec) if rec else None,
                        "scans": sum(1 for s in scans if s.session.visit_id == v.pk)})
@@ -423,7 +429,7 @@ def visit(request, visit_id):
     """A visit: its verdict on the scan's quality, torso pictures, indices in words; technical details folded."""
     v = get_object_or_404(Visit.objects.filter(patient__clinic__in=clinics_of(request.user)), pk=visit_id)
     rec = _best(v)
-    jobs = list(Job.objects.filter(session__visit=v).order_by("-created"))
+    jobs = list(_scan_jobs(v))
     running = any(j.state in (Job.QUEUED, Job.RUNNING) for j in jobs)
     report = rec.report if rec else {}
     pairs = report.get("registration", {}).get("pairs", [])
@@ -479,13 +485,13 @@ def correct_landmarks(request, visit_id):
 
 
 @login_required
+@require_http_methods(["GET", "HEAD", "POST"])
 def comparison(request, patient_id):
     """Any two scans of the patient (two visits, or a same-day re-scan): the verdict, then the deformation map,
-    per-region changes and every index's change against the scanner's noise."""
-    from analysis.repeatability import index_changes
+    per-region changes and every index's change against the scanner's noise.
 
-    from .analysis_step import compare_reconstructions
-
+    A pair not compared yet is compared by a job (registering two torsos takes a while): the page shows its
+    progress and refreshes itself until the result is there. A failed job can be tried again (POST)."""
     p = get_object_or_404(_patients(request.user), pk=patient_id)
     back = reverse("patient", args=[p.pk])
     scans = _scans(p)
@@ -515,7 +521,43 @@ def comparison(request, patient_id):
                         400, back)
     if order[later.pk] < order[earlier.pk]:
         earlier, later = later, earlier
-    comp = compare_reconstructions(earlier, later)
+    comp = Comparison.objects.filter(earlier=earlier, later=later).first()
+    if comp is None:
+        job = _comparison_job(request, earlier, later)
+        if request.method == "POST":  # back to the page's address, so that its refresh does not post again
+            return redirect(request.get_full_path())
+        comp = Comparison.objects.filter(earlier=earlier, later=later).first()
+        if comp is None:
+            return render(request, "clinic/comparison_progress.html", {
+                **_patient_context(p), "job": job, "earlier": earlier, "later": later,
+                "repeat": earlier.session.visit_id == later.session.visit_id,
+                "waited": int((timezone.now() - job.dispatched).total_seconds()),
+                "error": _job_error_words(job) if job.state == Job.FAILED else None})
+    return _comparison_page(request, p, earlier, later, comp, scans)
+
+
+def _comparison_job(request, earlier, later) -> Job:
+    """The pair's comparison job, made and sent if there is none. A failed one is queued again when the page
+    asks (a POST, from its "Try again" button); a succeeded one whose result is gone, at once."""
+    job = pipeline.request_comparison(earlier, later)
+    gone = job.state == Job.SUCCEEDED and not Comparison.objects.filter(earlier=earlier, later=later).exists()
+    if gone or (job.state == Job.FAILED and request.method == "POST"):
+        try:
+            job = pipeline.rerun(job)
+        except pipeline.JobError:  # another request re-queued it first: show that one's progress
+            job.refresh_from_db()
+    return job
+
+
+def _job_error_words(job) -> str:
+    """A failed comparison's reason, without the traceback an unexpected fault keeps for the technician."""
+    first = (job.error or "").splitlines()[0] if job.error else ""
+    return first.removeprefix("comparison: ") or "the comparison could not be computed"
+
+
+def _comparison_page(request, p, earlier, later, comp, scans):
+    from analysis.repeatability import index_changes
+
     mdc = _mdc(p.clinic)
     noise = _noise(p.clinic)
     facing = comp.report.get("facing") or {}
