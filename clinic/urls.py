@@ -2,7 +2,7 @@ from django.contrib import admin
 from django.contrib.auth import views as auth_views
 from django.urls import path
 
-from . import views
+from . import report_views, views
 from .api import api
 
 urlpatterns = [
@@ -20,6 +20,8 @@ urlpatterns = [
     path("patients/<int:patient_id>/compare/", views.comparison, name="comparison"),
     path("visits/<int:visit_id>/", views.visit, name="visit"),
     path("visits/<int:visit_id>/edit", views.edit_visit, name="edit_visit"),
+    path("visits/<int:pk>/report.pdf", report_views.visit_report, name="visit_report"),
+    path("comparisons/<int:pk>/report.pdf", report_views.comparison_report, name="comparison_report"),
     path("visits/<int:visit_id>/landmarks", views.correct_landmarks, name="correct_landmarks"),
     path("rigs/<str:serial>/", views.rig, name="rig"),
     path("rigs/<str:serial>/keys", views.issue_rig_key, name="issue_rig_key"),
