@@ -260,7 +260,7 @@ JOB_REDISPATCH_SECONDS = envint("JOB_REDISPATCH_SECONDS", 60)
 JOB_SWEEP_SECONDS = envint("JOB_SWEEP_SECONDS", 30)
 
 # Scheduled work (Celery beat with django-celery-beat's database scheduler):
-# rigs due for recalibration are flagged; stalled jobs are sent again.
+# rigs due for recalibration are flagged; stalled jobs are sent again; stored files are checked against rows.
 CELERY_BEAT_SCHEDULER = "django_celery_beat.schedulers:DatabaseScheduler"
 CELERY_BEAT_SCHEDULE = {
     "flag-rigs-for-recalibration": {
@@ -272,6 +272,11 @@ CELERY_BEAT_SCHEDULE = {
         "schedule": JOB_SWEEP_SECONDS,
         # a sweep still waiting behind busy workers when the next one is due is dropped, not piled up
         "options": {"expire_seconds": JOB_SWEEP_SECONDS},
+    },
+    # stored files no row references, rows whose file is missing: logged (manage.py check_files to act)
+    "check-stored-files": {
+        "task": "clinic.tasks.check_files",
+        "schedule": envint("FILE_CHECK_SECONDS", 24 * 3600),
     },
 }
 
