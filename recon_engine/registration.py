@@ -353,8 +353,7 @@ def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None
     sig = np.sqrt(np.diag(cov))
     if not cfg.estimate_scale:
         sig = np.concatenate([[0.0], sig])
-    return {"transform": T, "sigmas": {k: float(v) for k, v in zip(
-                ("scale", "omega_rad", "phi_rad", "kappa_rad", "tx_mm", "ty_mm", "tz_mm"), sig)},
+    return {"transform": T, "sigmas": {k: float(v) for k, v in zip(PARAMETER_NAMES, sig)},
             "average_normal_distance_mm": float(np.mean(np.abs(d))),
             "rms_normal_distance_mm": float(np.sqrt(np.mean(d ** 2))),
             "matched_fraction": float(len(idx) / len(X)), "pairs": int(len(idx)),
@@ -446,139 +445,166 @@ def _pair_blocks(a, b, x, foot, n, col, centres) -> list:
     return blocks
 
 
-def multi_surface_registration(surfaces: dict, order: list, reference: str, initial: dict,
-                               cfg: ICPatchConfig | None = None, progress=lambda msg: None,
-                               indices: dict | None = None) -> dict:
-    """All surfaces in one least-squares adjustment, ``reference`` held fixed.
-
-    Observations: the normal distances of every neighbouring pair's
-    point–patch correspondences around the circle ``order`` (including the
-    pair that closes it), so the misclosure of a chain of pair-wise results is
-    spread over all pairs instead of piling up at the end.
-
-    Returns ``{"transforms": {arm: Transform}, "sigmas": {arm: {...}}, "pairs":
-    [{"a", "b", "average_normal_distance_mm", "matched_fraction", ...}], "iterations", "converged"}``.
-    """
-    cfg = cfg or ICPatchConfig()
-    arms = list(order)
-    free = [a for a in arms if a != reference]
-    col = {a: 7 * i for i, a in enumerate(free)}
-    n_par = 7 * len(free)
-    pairs = neighbour_pairs(arms)
-    if cfg.symmetric:
+def observed_pairs(order: list, symmetric: bool = True) -> list:
+    """The ``(moving, fixed)`` arm pairs the multiple registration observes: each neighbouring pair around the
+    circle ``order`` (the closing one included), and with ``symmetric`` each also the other way round."""
+    pairs = neighbour_pairs(order)
+    if symmetric:
         # both directions of every pair: what is left of a bias (each surface's points against the other's
         # patches) pulls the two oppositely; the report's table keeps one row per neighbouring pair
         pairs = pairs + [(b, a) for a, b in pairs]
-    indices = indices or patch_indices({a: surfaces[a] for a in arms}, cfg)
-    sample = {(a, b): _subsample(len(surfaces[a].points), cfg.max_points_per_pair, seed=k)
-              for k, (a, b) in enumerate(pairs)}
-    T = {a: initial.get(a, Transform.identity()) for a in arms}
-    T[reference] = Transform.identity()
-    # start from the pair-wise solution: its acceptance distances are already tight
-    dist = {p: max(cfg.min_distance_mm, 2.0) for p in pairs}
-    # each pair's patch set, chosen once at the start (see choose_patches)
+    return pairs
+
+
+def pair_patch_sets(surfaces: dict, pairs: list, sample: dict, indices: dict, T: dict, dist: dict,
+                    cfg: ICPatchConfig) -> tuple[dict, dict]:
+    """Each pair's patch set (see :func:`choose_patches`): ``({pair: PatchIndex}, {pair: "compact" or "all"})``.
+
+    ``sample``: each pair's observed points of its moving arm (ids); ``indices``:
+    :func:`patch_indices` of the surfaces; ``T``: the arms' placements in the
+    reference frame; ``dist``: each pair's acceptance distance (mm).
+    """
     index, which = {}, {}
     for (a, b) in pairs:
         idx_all = sample[(a, b)]
         index[(a, b)], which[(a, b)] = choose_patches(
             surfaces[a].points[idx_all], surfaces[a].normals[idx_all], indices[b],
             T[b].inverse().compose(T[a]), dist[(a, b)], cfg)
-    converged = False
-    it = 0
-    frozen = {}
-    near = {p: {} for p in pairs}
-    # each observed point's distance to its own surface's rim (mm), where the rim rule asks for it
-    rim_distance = {p: indices[p[0]][0].vertex_rim_distance[sample[p]] if cfg.rim_margin_mm is not None else None
-                    for p in pairs}
-    weak = set()
-    scale_weight = 0.0 if cfg.estimate_scale else 1e12
-    for it in range(1, cfg.max_iterations + 1):
-        N = np.zeros((n_par, n_par))
-        rhs = np.zeros(n_par)
-        centres = {a: T[a].apply(surfaces[a].points.mean(axis=0)) for a in arms}
-        stats = {}
-        if it <= cfg.freeze_after:
-            # every pair's closest-patch queries at once, on threads (Open3D and numpy release the GIL)
-            def fresh(p):
-                a, b = p
-                return correspondences(surfaces[a].points[sample[p]], surfaces[a].normals[sample[p]], index[p],
-                                       T[b].inverse().compose(T[a]), dist[p], cfg, near[p], rim_distance[p])
-            with ThreadPoolExecutor(cores(cfg.threads)) as pool:
-                frozen.update(zip(pairs, pool.map(fresh, pairs)))
-        for (a, b) in pairs:
-            idx_all = sample[(a, b)]
-            X = surfaces[a].points[idx_all]
-            rel = T[b].inverse().compose(T[a])
-            # after a few iterations the pairs are kept, so the adjustment converges instead of
-            # jittering as points at the acceptance limit come and go
-            idx, n_loc, p0_loc, _ = frozen[(a, b)]
-            if len(idx) < cfg.min_pairs:
-                # a pair that barely overlaps says nothing reliable: it is left out (and reported)
-                weak.add((a, b))
-                stats[(a, b)] = (np.zeros(0), 0, len(idx_all))
-                continue
-            weak.discard((a, b))
-            d_loc = np.sum((rel.apply(X[idx]) - p0_loc) * n_loc, axis=1)
-            x = T[a].apply(X[idx])
-            n = T[b].rotate(n_loc)
-            d = d_loc * T[b].scale
-            foot = x - d[:, None] * n
-            stats[(a, b)] = (d, len(idx), len(idx_all))
-            blocks = _pair_blocks(a, b, x, foot, n, col, centres)
-            for ca, Ja in blocks:
-                rhs[ca:ca + 7] -= Ja.T @ d
-                for cb, Jb in blocks:
-                    N[ca:ca + 7, cb:cb + 7] += Ja.T @ Jb
-        for a in free:
-            N[col[a], col[a]] += scale_weight
-        # every arm must hang on the reference through pairs that overlap
-        linked, grew = {reference}, True
-        while grew:
-            grew = False
-            for (a, b) in pairs:
-                if (a, b) not in weak and stats[(a, b)][1] and ((a in linked) != (b in linked)):
-                    linked |= {a, b}
-                    grew = True
-        if set(arms) - linked:
-            raise ValueError(f"arms {', '.join(sorted(set(arms) - linked))} are linked to the reference arm "
-                             f"{reference} by no pair of surfaces that overlaps enough")
-        dx = np.linalg.solve(N, rhs)
-        # corrections far below their own standard deviations also count as vanished: with few
-        # points the set of pairs keeps changing a little and the corrections jitter at that level
-        n_obs = sum(len(st[0]) for st in stats.values())
-        s0_it = np.sqrt(sum(float(np.sum(st[0] ** 2)) for st in stats.values()) / max(n_obs - n_par, 1))
-        sd = s0_it * np.sqrt(np.abs(np.diag(np.linalg.inv(N))))
-        negligible = bool(np.all(np.abs(dx) <= cfg.negligible_sigma * np.maximum(sd, 1e-15)))
-        biggest = 0.0
-        for a in free:
-            ds, w, dt = dx[col[a]], dx[col[a] + 1:col[a] + 4], dx[col[a] + 4:col[a] + 7]
-            dR = rodrigues(w)
-            c = centres[a]
-            T[a] = Transform(T[a].scale * (1 + ds), dR @ T[a].R, (1 + ds) * dR @ (T[a].t - c) + c + dt)
-            biggest = max(biggest, np.linalg.norm(w) / cfg.tol_rotation_rad, np.linalg.norm(dt) / cfg.tol_translation_mm,
-                          abs(ds) / cfg.tol_scale)
-        for p, (d, _, _) in stats.items():
-            if len(d):
-                dist[p] = max(cfg.min_distance_mm, min(dist[p], cfg.tighten_k * float(np.sqrt(np.mean(d ** 2)))))
-        if biggest < 1.0 or negligible:
-            converged = True
-            break
-    # figures at the solution; covariance from the last normal equations
-    dof = max(sum(len(s[0]) for s in stats.values()) - n_par, 1)
-    s0 = float(np.sqrt(sum(float(np.sum(s[0] ** 2)) for s in stats.values()) / dof))
-    cov = s0 ** 2 * np.linalg.inv(N)
-    names = ("scale", "omega_rad", "phi_rad", "kappa_rad", "tx_mm", "ty_mm", "tz_mm")
-    sig = {a: dict(zip(names, map(float, np.sqrt(np.diag(cov)[col[a]:col[a] + 7])))) for a in free}
-    # geometric strength: the same normal equations with the skin's smoothed normals instead of each patch's.
-    # A patch's normal tilts with its vertices' noise (tiny preset: by ~0.1 rad), and those tilts seem to hold
-    # an arm even along a direction the skin leaves free (a plain cylinder's axis): the formal sigmas above
-    # said 0.03 mm for an arm on plain-cylinder overlaps that slid 0.4 mm. Smoothed normals do not.
-    trees = {a: cKDTree(surfaces[a].points) for a in arms}
-    centres = {a: T[a].apply(surfaces[a].points.mean(axis=0)) for a in arms}
-    Ng = np.zeros((n_par, n_par))
-    for (a, b) in pairs:
-        if (a, b) in weak:
-            continue
+    return index, which
+
+
+def pair_residuals(X: np.ndarray, n_loc: np.ndarray, p0_loc: np.ndarray, T_moving: Transform,
+                   T_fixed: Transform) -> tuple:
+    """One pair's observations in the reference frame: ``(x, foot, n, d)``.
+
+    ``X`` (N, 3): the moving arm's paired points in its own frame; ``n_loc``,
+    ``p0_loc`` (N, 3): their patches' normals and the points of the patches
+    under them in the fixed arm's frame (from :func:`correspondences`);
+    ``T_moving``, ``T_fixed``: the two arms' placements in the reference
+    frame. Returns the points ``x``, their feet on the patches, the patch
+    normals (all (N, 3), reference frame, mm) and the normal distances
+    ``d`` (N,, mm).
+    """
+    rel = T_fixed.inverse().compose(T_moving)
+    d = np.sum((rel.apply(X) - p0_loc) * n_loc, axis=1) * T_fixed.scale
+    x = T_moving.apply(X)
+    n = T_fixed.rotate(n_loc)
+    return x, x - d[:, None] * n, n, d
+
+
+def normal_equations(observations: dict, col: dict, centres: dict, n_par: int, scale_weight: float,
+                     pair_weight: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Normal equations ``N dx = rhs`` of the normal distances: ``(N (n_par, n_par), rhs (n_par,))``.
+
+    ``observations``: ``{(a, b): (x, foot, n, d)}`` per pair (see
+    :func:`pair_residuals`; ``d`` None: no right-hand side). Each free arm's
+    7 parameters (scale, rotation [rad], translation [mm]) start at column
+    ``col[arm]`` and act about ``centres[arm]`` (reference frame, mm); the
+    reference arm has no columns. ``scale_weight`` on each scale's diagonal
+    holds it (1e12: held where it is; 0: estimated). ``pair_weight``: a
+    factor per pair (default 1).
+    """
+    N = np.zeros((n_par, n_par))
+    rhs = np.zeros(n_par)
+    for (a, b), (x, foot, n, d) in observations.items():
+        w = 1.0 if pair_weight is None else pair_weight[(a, b)]
+        blocks = _pair_blocks(a, b, x, foot, n, col, centres)
+        for ca, Ja in blocks:
+            if d is not None:
+                rhs[ca:ca + 7] -= w * (Ja.T @ d)
+            for cb, Jb in blocks:
+                N[ca:ca + 7, cb:cb + 7] += w * (Ja.T @ Jb)
+    for c in col.values():
+        N[c, c] += scale_weight
+    return N, rhs
+
+
+def linked_arms(held_pairs: list, reference) -> set:
+    """The arms that a chain of ``held_pairs`` (pairs observed in the adjustment) links to ``reference``."""
+    linked, grew = {reference}, True
+    while grew:
+        grew = False
+        for (a, b) in held_pairs:
+            if (a in linked) != (b in linked):
+                linked |= {a, b}
+                grew = True
+    return linked
+
+
+def unit_weight_sigma(residuals, n_par: int) -> float:
+    """A posteriori sigma of unit weight (mm): the normal distances' root sum of squares over the redundancy.
+
+    ``residuals``: the normal distances (mm) of each pair, an iterable of arrays."""
+    residuals = list(residuals)
+    n_obs = sum(len(d) for d in residuals)
+    return float(np.sqrt(sum(float(np.sum(d ** 2)) for d in residuals) / max(n_obs - n_par, 1)))
+
+
+def corrections_negligible(dx: np.ndarray, N: np.ndarray, s0: float, negligible_sigma: float) -> bool:
+    """Whether every correction ``dx`` is below ``negligible_sigma`` of its standard deviation (``s0`` times
+    the root of ``N``'s inverse's diagonal): with few points the set of pairs keeps changing a little and the
+    corrections jitter at that level, so they count as vanished there."""
+    sd = s0 * np.sqrt(np.abs(np.diag(np.linalg.inv(N))))
+    return bool(np.all(np.abs(dx) <= negligible_sigma * np.maximum(sd, 1e-15)))
+
+
+def apply_corrections(T: dict, dx: np.ndarray, col: dict, centres: dict, cfg: ICPatchConfig) -> tuple[dict, float]:
+    """The arms' placements after the corrections ``dx``, and the largest correction over its tolerance.
+
+    Each free arm's correction (scale, rotation [rad], translation [mm], at
+    ``col[arm]``) acts about its centre ``centres[arm]`` (reference frame):
+    ``T'(x) = (1 + ds) dR (T(x) - c) + c + dt``. The second value is below 1
+    when every correction is within ``cfg``'s convergence tolerances.
+    """
+    T = dict(T)
+    biggest = 0.0
+    for a, c0 in col.items():
+        ds, w, dt = dx[c0], dx[c0 + 1:c0 + 4], dx[c0 + 4:c0 + 7]
+        dR = rodrigues(w)
+        c = centres[a]
+        T[a] = Transform(T[a].scale * (1 + ds), dR @ T[a].R, (1 + ds) * dR @ (T[a].t - c) + c + dt)
+        biggest = max(biggest, np.linalg.norm(w) / cfg.tol_rotation_rad, np.linalg.norm(dt) / cfg.tol_translation_mm,
+                      abs(ds) / cfg.tol_scale)
+    return T, biggest
+
+
+def tightened_distances(dist: dict, residuals: dict, cfg: ICPatchConfig) -> dict:
+    """Each pair's acceptance distance (mm) for the next iteration: ``tighten_k`` times the RMS of its normal
+    distances (mm), never wider than before nor below ``min_distance_mm``; pairs without observations keep theirs."""
+    out = dict(dist)
+    for p, d in residuals.items():
+        if len(d):
+            out[p] = max(cfg.min_distance_mm, min(dist[p], cfg.tighten_k * float(np.sqrt(np.mean(d ** 2)))))
+    return out
+
+
+PARAMETER_NAMES = ("scale", "omega_rad", "phi_rad", "kappa_rad", "tx_mm", "ty_mm", "tz_mm")
+
+
+def parameter_sigmas(N: np.ndarray, s0: float, col: dict) -> dict:
+    """Each free arm's parameters' standard deviations ``{arm: {name: sigma}}`` (see ``PARAMETER_NAMES``) from
+    the normal matrix ``N`` and the sigma of unit weight ``s0`` (mm)."""
+    var = np.diag(s0 ** 2 * np.linalg.inv(N))
+    return {a: dict(zip(PARAMETER_NAMES, map(float, np.sqrt(var[c:c + 7])))) for a, c in col.items()}
+
+
+def geometric_strength(surfaces: dict, held_pairs: list, frozen: dict, sample: dict, T: dict, col: dict,
+                       n_par: int, scale_weight: float, s0: float) -> dict:
+    """How firmly the overlaps' shape holds each free arm (see :func:`arm_strength`): ``{arm: {...}}``.
+
+    The adjustment's normal equations at the solution ``T`` with the skin's
+    smoothed normals instead of each patch's. A patch's normal tilts with its
+    vertices' noise (tiny preset: by ~0.1 rad), and those tilts seem to hold
+    an arm even along a direction the skin leaves free (a plain cylinder's
+    axis): the formal sigmas said 0.03 mm for an arm on plain-cylinder
+    overlaps that slid 0.4 mm. Smoothed normals do not. ``frozen``: each
+    pair's correspondences (see :func:`correspondences`) of the points
+    ``sample`` of its moving arm; ``s0``: the sigma of unit weight (mm).
+    """
+    trees = {a: cKDTree(surfaces[a].points) for a in T}
+    centres = {a: T[a].apply(surfaces[a].points.mean(axis=0)) for a in T}
+    observations, k_of = {}, {}
+    for (a, b) in held_pairs:
         # every k-th pair is enough for a covariance (scaled back by k); smoothing normals is costly
         k = max(1, len(frozen[(a, b)][0]) // 5000)
         idx, n_loc, p0_loc = (v[::k] for v in frozen[(a, b)][:3])
@@ -587,26 +613,33 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         xb = rel.apply(X)
         foot_b = xb - np.sum((xb - p0_loc) * n_loc, axis=1)[:, None] * n_loc
         n = T[b].rotate(smooth_normals(surfaces[b], foot_b, trees[b]))
-        x, foot = T[a].apply(X), T[b].apply(foot_b)
-        blocks = _pair_blocks(a, b, x, foot, n, col, centres)
-        for ca, Ja in blocks:
-            for cb, Jb in blocks:
-                Ng[ca:ca + 7, cb:cb + 7] += k * (Ja.T @ Jb)
-    for a in free:
-        Ng[col[a], col[a]] += scale_weight
-    cov_g = s0 ** 2 * np.linalg.pinv(Ng)
-    strength = {a: arm_strength(cov_g[col[a]:col[a] + 7, col[a]:col[a] + 7], T[a].apply(surfaces[a].points),
-                                centres[a]) for a in free}
-    pair_rows = []
+        observations[(a, b)] = (T[a].apply(X), T[b].apply(foot_b), n, None)
+        k_of[(a, b)] = k
+    Ng = normal_equations(observations, col, centres, n_par, scale_weight, pair_weight=k_of)[0]
+    cov = s0 ** 2 * np.linalg.pinv(Ng)
+    return {a: arm_strength(cov[c:c + 7, c:c + 7], T[a].apply(surfaces[a].points), centres[a])
+            for a, c in col.items()}
+
+
+def fit_table(surfaces: dict, forward_pairs: list, residuals: dict, sample: dict, index: dict, which: dict,
+              dist: dict, T: dict, cfg: ICPatchConfig) -> list:
+    """The paper's Table 1: how the registered surfaces fit, one row per neighbouring pair (mm, fractions).
+
+    Every point–patch pair at the solution ``T`` within the pair's final
+    acceptance distance ``dist``, whichever of them the adjustment observed
+    (``rim_margin_mm`` and the frozen set choose observations; they do not make
+    the rest of the overlap unmatched). ``residuals``: the normal distances the
+    adjustment observed per pair (empty: the pair was left out, and is not
+    presented as fitting); ``sample``, ``index``, ``which``: each pair's
+    observed points of its moving arm, its patch index and the name of that
+    patch set.
+    """
     loose = ICPatchConfig(max_normal_angle_deg=90.0, edge_margin=cfg.edge_margin)
-    # the paper's Table 1 measures how the registered surfaces fit: every point-patch pair at the solution
-    # within the final acceptance distance, whichever of them the adjustment observed (rim_margin_mm and the
-    # frozen set choose observations; they do not make the rest of the overlap unmatched)
     fit_cfg = replace(cfg, rim_margin_mm=None)
-    forward = set(neighbour_pairs(arms))
-    for (a, b), (d_adj, k_adj, n_all) in stats.items():
-        if (a, b) not in forward:
-            continue
+    rows = []
+    for (a, b) in forward_pairs:
+        d_adj = residuals[(a, b)]
+        k_adj, n_all = len(d_adj), len(sample[(a, b)])
         idx_all = sample[(a, b)]
         X = surfaces[a].points[idx_all]
         rel = T[b].inverse().compose(T[a])
@@ -615,24 +648,113 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         over = len(over_idx)
         if k_adj:
             fit_idx, _, _, d = correspondences(X, surfaces[a].normals[idx_all], index[(a, b)], rel, dist[(a, b)],
-                                                  fit_cfg)
+                                               fit_cfg)
             d = d * T[b].scale
-        else:  # left out of the adjustment: not presented as fitting
+        else:
             fit_idx, d = np.zeros(0, np.int64), np.zeros(0)
         k = len(d)
         matched_in_overlap = int(np.isin(fit_idx, over_idx).sum())
-        pair_rows.append({"a": a, "b": b, "average_normal_distance_mm": float(np.mean(np.abs(d))) if k else None,
-                          "rms_normal_distance_mm": float(np.sqrt(np.mean(d ** 2))) if k else None,
-                          "matched_fraction": float(k / max(n_all, 1)),
-                          "overlap_fraction": float(over / max(n_all, 1)),
-                          "overlap_matched_fraction": float(matched_in_overlap / over) if over else 0.0,
-                          "pairs": int(k), "adjustment_pairs": int(k_adj),
-                          "adjustment_average_normal_distance_mm": float(np.mean(np.abs(d_adj))) if k_adj else None,
-                          "acceptance_distance_mm": float(dist[(a, b)]), "patches": which[(a, b)]})
-        if k:
-            progress(f"multiple registration {a}-{b}: {pair_rows[-1]['average_normal_distance_mm']:.3f} mm")
+        rows.append({"a": a, "b": b, "average_normal_distance_mm": float(np.mean(np.abs(d))) if k else None,
+                     "rms_normal_distance_mm": float(np.sqrt(np.mean(d ** 2))) if k else None,
+                     "matched_fraction": float(k / max(n_all, 1)),
+                     "overlap_fraction": float(over / max(n_all, 1)),
+                     "overlap_matched_fraction": float(matched_in_overlap / over) if over else 0.0,
+                     "pairs": int(k), "adjustment_pairs": int(k_adj),
+                     "adjustment_average_normal_distance_mm": float(np.mean(np.abs(d_adj))) if k_adj else None,
+                     "acceptance_distance_mm": float(dist[(a, b)]), "patches": which[(a, b)]})
+    return rows
+
+
+def multi_surface_registration(surfaces: dict, order: list, reference: str, initial: dict,
+                               cfg: ICPatchConfig | None = None, progress=lambda msg: None,
+                               indices: dict | None = None) -> dict:
+    """All surfaces in one least-squares adjustment, ``reference`` held fixed.
+
+    Observations: the normal distances of every neighbouring pair's
+    point–patch correspondences around the circle ``order`` (including the
+    pair that closes it), so the misclosure of a chain of pair-wise results is
+    spread over all pairs instead of piling up at the end. ``initial``: each
+    arm's placement in the reference arm's frame (the pair-wise solution);
+    ``indices``: :func:`patch_indices` of the surfaces, if already built.
+
+    Steps: each pair's patch set (:func:`choose_patches`); then, until the
+    corrections vanish, the pairs' correspondences (kept after
+    ``freeze_after`` iterations), their residuals (:func:`pair_residuals`),
+    the normal equations (:func:`normal_equations`), the corrections
+    (:func:`apply_corrections`) and tighter acceptance distances; at the
+    solution the parameters' sigmas, the arms' geometric strength
+    (:func:`geometric_strength`) and Table 1 (:func:`fit_table`).
+
+    Returns ``{"transforms": {arm: Transform}, "sigmas": {arm: {...}}, "strength": {arm: {...}}, "pairs":
+    [{"a", "b", "average_normal_distance_mm", "matched_fraction", ...}], "iterations", "converged",
+    "sigma0_mm", "left_out"}``.
+    """
+    cfg = cfg or ICPatchConfig()
+    arms = list(order)
+    free = [a for a in arms if a != reference]
+    col = {a: 7 * i for i, a in enumerate(free)}
+    n_par = 7 * len(free)
+    pairs = observed_pairs(arms, cfg.symmetric)
+    indices = indices or patch_indices({a: surfaces[a] for a in arms}, cfg)
+    sample = {(a, b): _subsample(len(surfaces[a].points), cfg.max_points_per_pair, seed=k)
+              for k, (a, b) in enumerate(pairs)}
+    T = {a: initial.get(a, Transform.identity()) for a in arms}
+    T[reference] = Transform.identity()
+    # start from the pair-wise solution: its acceptance distances are already tight
+    dist = {p: max(cfg.min_distance_mm, 2.0) for p in pairs}
+    # each pair's patch set, chosen once at the start
+    index, which = pair_patch_sets(surfaces, pairs, sample, indices, T, dist, cfg)
+    near = {p: {} for p in pairs}
+    # each observed point's distance to its own surface's rim (mm), where the rim rule asks for it
+    rim_distance = {p: indices[p[0]][0].vertex_rim_distance[sample[p]] if cfg.rim_margin_mm is not None else None
+                    for p in pairs}
+    scale_weight = 0.0 if cfg.estimate_scale else 1e12
+    converged, it, frozen, weak = False, 0, {}, set()
+    for it in range(1, cfg.max_iterations + 1):
+        centres = {a: T[a].apply(surfaces[a].points.mean(axis=0)) for a in arms}
+        if it <= cfg.freeze_after:
+            # every pair's closest-patch queries at once, on threads (Open3D and numpy release the GIL); after
+            # these iterations the pairs are kept, so the adjustment converges instead of jittering as points
+            # at the acceptance limit come and go
+            def fresh(p):
+                a, b = p
+                return correspondences(surfaces[a].points[sample[p]], surfaces[a].normals[sample[p]], index[p],
+                                       T[b].inverse().compose(T[a]), dist[p], cfg, near[p], rim_distance[p])
+            with ThreadPoolExecutor(cores(cfg.threads)) as pool:
+                frozen.update(zip(pairs, pool.map(fresh, pairs)))
+        # a pair that barely overlaps says nothing reliable: it is left out (and reported)
+        weak = {p for p in pairs if len(frozen[p][0]) < cfg.min_pairs}
+        observations = {}
+        for (a, b) in pairs:
+            if (a, b) not in weak:
+                idx, n_loc, p0_loc, _ = frozen[(a, b)]
+                observations[(a, b)] = pair_residuals(surfaces[a].points[sample[(a, b)]][idx], n_loc, p0_loc,
+                                                      T[a], T[b])
+        residuals = {p: observations[p][3] if p in observations else np.zeros(0) for p in pairs}
+        N, rhs = normal_equations(observations, col, centres, n_par, scale_weight)
+        # every arm must hang on the reference through pairs that overlap
+        unlinked = set(arms) - linked_arms([p for p in pairs if len(residuals[p])], reference)
+        if unlinked:
+            raise ValueError(f"arms {', '.join(sorted(unlinked))} are linked to the reference arm "
+                             f"{reference} by no pair of surfaces that overlaps enough")
+        dx = np.linalg.solve(N, rhs)
+        negligible = corrections_negligible(dx, N, unit_weight_sigma(residuals.values(), n_par), cfg.negligible_sigma)
+        T, biggest = apply_corrections(T, dx, col, centres, cfg)
+        dist = tightened_distances(dist, residuals, cfg)
+        if biggest < 1.0 or negligible:
+            converged = True
+            break
+    # figures at the solution; covariance from the last normal equations
+    s0 = unit_weight_sigma(residuals.values(), n_par)
+    sig = parameter_sigmas(N, s0, col)
+    strength = geometric_strength(surfaces, [p for p in pairs if p not in weak], frozen, sample, T, col, n_par,
+                                  scale_weight, s0)
+    pair_rows = fit_table(surfaces, neighbour_pairs(arms), residuals, sample, index, which, dist, T, cfg)
+    for row in pair_rows:
+        if row["pairs"]:
+            progress(f"multiple registration {row['a']}-{row['b']}: {row['average_normal_distance_mm']:.3f} mm")
         else:
-            progress(f"multiple registration {a}-{b}: left out, the surfaces barely overlap")
+            progress(f"multiple registration {row['a']}-{row['b']}: left out, the surfaces barely overlap")
     return {"transforms": T, "sigmas": sig, "strength": strength, "pairs": pair_rows, "iterations": it,
             "converged": converged, "sigma0_mm": s0, "left_out": sorted(f"{a}-{b}" for a, b in weak)}
 
