@@ -15,9 +15,11 @@ import tempfile
 from pathlib import Path
 
 from django import forms
+from django.conf import settings
 from django.contrib import messages
 from django.contrib.auth import get_user_model
 from django.contrib.auth.decorators import login_required
+from django.core import validators
 from django.core.exceptions import PermissionDenied
 from django.core.files.storage import default_storage
 from django.db import connection, transaction
@@ -31,6 +33,7 @@ from django.views.decorators.http import require_http_methods, require_POST
 
 from . import api, labels, pipeline
 from .models import Comparison, Job, Member, Patient, Reconstruction, Rig, Visit, clinics_of
+from .validation import MAX_NOTES
 
 # Who may do what. Actions the API has (re-running a job, issuing and revoking a rig's keys) are run through
 # the API's own operations, so the pages get its scoping, its role check (`_member_clinic`, administrators and
@@ -338,9 +341,48 @@ def _pictures(kind, obj) -> list:
              "page": reverse("picture_page", args=[kind, obj.pk, name])} for name in (obj.pictures or {})]
 
 
+WORKLIST_LIMIT = 50  # overdue patients listed on the home page, the longest overdue first
+
+
+def _months_before(day, months):
+    """The same day of the month ``months`` earlier (the month's last day where it is shorter)."""
+    import calendar
+
+    y, m = divmod(day.year * 12 + day.month - 1 - months, 12)
+    return day.replace(year=y, month=m + 1, day=min(day.day, calendar.monthrange(y, m + 1)[1]))
+
+
+def _worklist(user, today) -> dict:
+    """Today's visits and the patients whose follow-up is overdue, in the user's clinics.
+
+    Overdue: the next visit due date set at the patient's latest visit has passed; where none was set, the
+    latest visit is more than ``FOLLOW_UP_MONTHS`` old. A patient with a visit booked from today on is not
+    overdue (the latest visit is that one)."""
+    from django.db.models import OuterRef, Subquery
+
+    months = getattr(settings, "FOLLOW_UP_MONTHS", 6)
+    visits_today = (Visit.objects.filter(patient__in=_patients(user), date=today)
+                    .select_related("patient", "patient__clinic").order_by("patient__name", "id"))
+    latest = Visit.objects.filter(patient=OuterRef("pk")).order_by("-date", "-id")
+    cutoff = _months_before(today, months)
+    overdue = []
+    for row in (_patients(user).annotate(last_visit=Subquery(latest.values("date")[:1]),
+                                         due=Subquery(latest.values("next_visit_due")[:1]))
+                .filter(Q(due__lt=today) | Q(due__isnull=True, last_visit__lt=cutoff))
+                .values("pk", "name", "identifier", "last_visit", "due")):
+        row["due_since"] = row["due"] or _months_before(row["last_visit"], -months)
+        row["late"] = _span(row["due_since"], today)
+        overdue.append(row)
+    overdue.sort(key=lambda r: (r["due_since"], r["name"]))
+    return {"today": today, "visits_today": visits_today, "overdue": overdue[:WORKLIST_LIMIT],
+            "overdue_count": len(overdue), "follow_up_months": months}
+
+
+
 @login_required
 def patients(request):
-    """The patients of the user's clinics, with a search by name or identifier."""
+    """The worklist (today's visits, overdue follow-ups), then the patients of the user's clinics, with a
+    search by name or identifier."""
     q = request.GET.get("q", "").strip()
     rows = _patients(request.user).select_related("clinic")
     if q:
@@ -349,6 +391,7 @@ def patients(request):
     administered = [c for c in clinics_of(request.user) if _may(request, c.pk, MANAGE_MEMBERS)]
     return render(request, "clinic/patients.html", {"patients": rows, "q": q, "rigs": rigs,
                                                     "administered": administered,
+                                                    "worklist": _worklist(request.user, timezone.localdate()),
                                                     "may_edit": any(_may(request, c.pk, EDIT_PATIENTS)
                                                                     for c in clinics_of(request.user))})
 
@@ -812,6 +855,8 @@ class PatientForm(forms.ModelForm):
 
     def __init__(self, *args, clinics=None, **kw):
         super().__init__(*args, **kw)
+        self.fields["notes"].max_length = MAX_NOTES  # as the API's limit
+        self.fields["notes"].validators.append(validators.MaxLengthValidator(MAX_NOTES))
         if self.instance.pk:
             del self.fields["clinic"]
         else:
@@ -840,8 +885,18 @@ class PatientForm(forms.ModelForm):
 class VisitForm(forms.ModelForm):
     class Meta:
         model = Visit
-        fields = ["date", "reason", "notes"]
-        widgets = {"date": forms.DateInput(attrs={"type": "date"}), "notes": forms.Textarea(attrs={"rows": 4})}
+        fields = ["date", "reason", "notes", "next_visit_due"]
+        widgets = {"date": forms.DateInput(attrs={"type": "date"}), "notes": forms.Textarea(attrs={"rows": 4}),
+                   "next_visit_due": forms.DateInput(attrs={"type": "date"})}
+        labels = {"next_visit_due": "Next visit due"}
+
+    def __init__(self, *args, **kw):
+        super().__init__(*args, **kw)
+        self.fields["next_visit_due"].help_text = (
+            "Optional. Past this date the patient is listed as overdue on the worklist (without it: "
+            f"{getattr(settings, 'FOLLOW_UP_MONTHS', 6)} months after this visit).")
+        self.fields["notes"].max_length = MAX_NOTES  # as the API's limit
+        self.fields["notes"].validators.append(validators.MaxLengthValidator(MAX_NOTES))
 
     def clean_date(self):
         d = self.cleaned_data.get("date")
@@ -849,6 +904,13 @@ class VisitForm(forms.ModelForm):
         if d and born and d < born:
             raise forms.ValidationError("The visit cannot be before the patient's date of birth.")
         return d
+
+    def clean(self):
+        data = super().clean()
+        d, due = data.get("date"), data.get("next_visit_due")
+        if d and due and due <= d:
+            self.add_error("next_visit_due", "The next visit must be due after this visit.")
+        return data
 
 
 def _form_page(request, form, title, context=None, status=200):
