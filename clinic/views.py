@@ -644,6 +644,19 @@ def rig(request, serial):
                                                 serial=serial))
 
 
+def _calibration_due(r, now) -> dict:
+    """When the rig's next calibration is due: its latest good calibration plus its interval (the rule the
+    scheduled check flags rigs by), and whether that date has passed."""
+    from datetime import timedelta
+
+    last = r.current_calibration
+    if last is None:
+        return {"last": None, "due": None, "overdue": True}
+    due = last.calibrated_at + timedelta(days=r.recalibration_interval_days)
+    return {"last": last.calibrated_at, "due": due, "overdue": due < now,
+            "in_words": _span(now.date(), due.date()) if due >= now else _span(due.date(), now.date())}
+
+
 def _rig_page(request, r, new_key=None):
     calibrations = list(r.calibrations.all().order_by("calibrated_at"))
     cams = []
@@ -660,6 +673,7 @@ def _rig_page(request, r, new_key=None):
     may_manage_keys = _may(request, r.clinic_id)
     return render(request, "clinic/rig.html", {
         "rig": r, "calibrations": cal_rows, "cameras": cams, "has_checks": any(c["checks"] for c in cams),
+        "calibration_due": _calibration_due(r, timezone.now()),
         "may_manage_keys": may_manage_keys, "keys": r.keys.order_by("-created") if may_manage_keys else [],
         "new_key": new_key})
 
