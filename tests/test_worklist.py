@@ -78,6 +78,7 @@ def test_a_visit_sets_when_the_next_one_is_due_and_its_notes_are_edited(client, 
                                              "notes": "Brace 20 h a day"})
     v.refresh_from_db()
     assert r.status_code == 302 and str(v.next_visit_due) == "2027-01-01" and v.notes == "Brace 20 h a day"
+    assert "Next visit due on 1 Jan 2027" in client.get(f"/visits/{v.pk}/").content.decode()
     # the change is in the audit trail, under the patient
     assert AuditEvent.objects.filter(action=AuditEvent.CHANGE, object_type="visit", patient_id=p.pk,
                                      username="charlie").exists()
