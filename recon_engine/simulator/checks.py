@@ -4,7 +4,8 @@ Used by the tests (tiny preset) and the benchmark (paper scale):
 
 - marker corners measured in the rendered test-field images, with a method
   independent of OpenCV's corner refinement (edges fitted in the undistorted
-  image), against the truth projection of the true corners;
+  image), against the truth projection of the true corners through the true
+  lens (:mod:`.lens`, with the terms the engine's model lacks);
 - normalized cross-correlation of patches around truth-projected torso points
   between neighbouring cameras of an arm.
 """
@@ -17,11 +18,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..camera import pixel_to_ray, project
+from ..camera import Camera
 from ..formats import load_images, read_calibration, read_capture, read_rig, read_testfield
 from ..imaging import sample_bilinear
 from ..targets import detect_markers, measure_markers
+from . import lens as sim_lens
 from .render import Scene, Surface
+
+
+def _project(cam: Camera, lens, X) -> np.ndarray:
+    """Pixels of world points through the true lens (not the engine's model)."""
+    return sim_lens.project(lens, cam.R, cam.C, X)
 
 
 def marker_corner_errors(scenario: str | Path) -> dict:
@@ -34,6 +41,7 @@ def marker_corner_errors(scenario: str | Path) -> dict:
     out = Path(scenario)
     rig = read_rig(out / "rig.json")
     cal = read_calibration(out / "truth" / "calibration.json")
+    lenses = sim_lens.true_lenses(cal)
     true_tf = read_testfield(out / "truth" / "testfield.json")
     poses = json.loads((out / "truth" / "testfield_poses.json").read_text())["poses"]
     ours, theirs = [], []
@@ -47,7 +55,7 @@ def marker_corner_errors(scenario: str | Path) -> dict:
             if not known.any():
                 continue
             X = np.array([true_tf.markers[i] for i in ids[known]]).reshape(-1, 3) @ R.T + t
-            truth = project(cam, X).reshape(-1, 4, 2)
+            truth = _project(cam, lenses[cam_id], X).reshape(-1, 4, 2)
             ours.append(np.linalg.norm(corners[known] - truth, axis=-1).ravel())
             ids_cv, coarse = detect_markers(image, true_tf.aruco_dictionary)
             keep = np.array([i in true_tf.markers for i in ids_cv], dtype=bool)
@@ -57,7 +65,7 @@ def marker_corner_errors(scenario: str | Path) -> dict:
                 win = max(2, int(0.05 * np.linalg.norm(coarse[0, 0] - coarse[0, 1])))
                 cv2.cornerSubPix(image, pts, (win, win), (-1, -1), crit)
                 X = np.array([true_tf.markers[i] for i in ids_cv[keep]]).reshape(-1, 3) @ R.T + t
-                theirs.append(np.linalg.norm(pts.reshape(-1, 2) - project(cam, X), axis=-1))
+                theirs.append(np.linalg.norm(pts.reshape(-1, 2) - _project(cam, lenses[cam_id], X), axis=-1))
     return {"edge_fit": np.concatenate(ours) if ours else np.zeros(0),
             "opencv_subpix": np.concatenate(theirs) if theirs else np.zeros(0)}
 
@@ -79,6 +87,7 @@ def neighbour_ncc(scenario: str | Path, capture: str, half: int | None = None,
     out = Path(scenario)
     rig = read_rig(out / "rig.json")
     cal = read_calibration(out / "truth" / capture / "calibration.json")
+    lenses = sim_lens.true_lenses(cal)
     images = load_images(read_capture(out / "captures" / capture, rig), rig)
     body = o3d.io.read_triangle_mesh(str(out / "truth" / capture / "body.ply"))
     torso = o3d.io.read_triangle_mesh(str(out / "truth" / capture / "torso.ply"))
@@ -104,7 +113,7 @@ def neighbour_ncc(scenario: str | Path, capture: str, half: int | None = None,
             idx = np.flatnonzero(sel)[: 3 * max_points]
             lifted = P[idx] + 0.2 * N[idx]  # clear of the surface itself
             idx = idx[scene.visible(ca.C, lifted) & scene.visible(cb.C, lifted)][:max_points]
-            ua, ub = project(ca, P[idx]), project(cb, P[idx])
+            ua, ub = _project(ca, lenses[a], P[idx]), _project(cb, lenses[b], P[idx])
             inside = np.all((ua > h + 1) & (ua < [ca.width - h - 2, ca.height - h - 2]), axis=1)
             inside &= np.all((ub > h + 1) & (ub < [cb.width - h - 2, cb.height - h - 2]), axis=1)
             ua, ub = ua[inside], ub[inside]
@@ -117,10 +126,10 @@ def neighbour_ncc(scenario: str | Path, capture: str, half: int | None = None,
             # (a square in b would compare different skin wherever the views foreshorten differently)
             Pk, Nk = P[idx][inside], N[idx][inside]
             grid_a = np.stack([ua[:, :1] + gx.ravel(), ua[:, 1:] + gy.ravel()], axis=2).reshape(-1, 2)
-            rays = pixel_to_ray(ca, grid_a).reshape(len(ua), -1, 3)
+            rays = sim_lens.rays(lenses[a], ca.R, grid_a).reshape(len(ua), -1, 3)
             t = np.einsum("ij,ij->i", Pk - ca.C, Nk)[:, None] / np.einsum("ikj,ij->ik", rays, Nk)
             Xg = ca.C + rays * t[..., None]
-            uvb = project(cb, Xg.reshape(-1, 3)).reshape(len(ua), -1, 2)
+            uvb = _project(cb, lenses[b], Xg.reshape(-1, 3)).reshape(len(ua), -1, 2)
             pb = sample_bilinear(images[b], uvb[..., 0], uvb[..., 1]).astype(float)
             pa -= pa.mean(axis=1, keepdims=True)
             pb -= pb.mean(axis=1, keepdims=True)

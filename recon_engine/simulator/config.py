@@ -20,8 +20,15 @@ class CameraConfig:
     principal_point_sigma_px: float = 15.0  # 1-sigma offset of the principal point (at 3000 px)
     k1_range: tuple = (-0.25, 0.10)  # uniform; normalized-coordinate Brown–Conrady terms
     k2_sigma: float = 0.25
-    k3_sigma: float = 0.0
     p_sigma: float = 3e-4  # decentring, each of p1 and p2
+    # --- terms beyond the old lens (issue 29): drawn from their own random stream, so a seed's
+    # rig, scene and noise stay the same whatever they are; set by ``engine_lens`` to zero
+    k3_sigma: float = 1.5  # r^6 radial term: 1-sigma moves a paper corner (r = 0.24) by 0.5 px; the engine fixes k3
+    aspect_sigma: float = 0.002  # fy / fx - 1, 1-sigma (0.2 %; 95 % within 0.4 %): the engine estimates fx, fy
+    skew_sigma: float = 0.0  # px, 1-sigma of K[0, 1]: modern sensors' pixel grids are square to far below this
+    p3_sigma: float = 0.0  # Brown's higher-order decentring (1 + p3 r^2); off: no evidence of it in cheap lenses
+    prism_sigma: float = 2e-4  # thin prism s1, s3 (r^2): a sensor tilted ~0.2 mrad against the lens
+    prism2_sigma: float = 0.0  # thin prism s2, s4 (r^4)
     f_number: float = 5.6  # aperture: sets the depth of field
     focus_mm: float = 2350.0  # focused distance (about the near torso surface)
     blur_sigma_px: float = 0.5  # lens aberrations and pixel crosstalk (at 3000 px)
@@ -144,6 +151,18 @@ class ScenarioConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+LENS_EXTRAS = ("k3_sigma", "aspect_sigma", "skew_sigma", "p3_sigma", "prism_sigma", "prism2_sigma")
+
+
+def engine_lens(cfg: ScenarioConfig) -> ScenarioConfig:
+    """``cfg`` with the lenses of the simulator before issue 29: exactly the engine's model with k3 = 0.
+
+    The same seed then gives the same rig, scene and noise; only the lenses lack
+    k3, the aspect ratio and the terms the engine cannot represent.
+    """
+    return replace(cfg, camera=replace(cfg.camera, **{k: 0.0 for k in LENS_EXTRAS}))
 
 
 def preset(name: str, **overrides) -> ScenarioConfig:

@@ -1,7 +1,8 @@
 """Physically based image formation for the simulated rig.
 
 For every pixel, ``supersample``² rays are traced through the camera's own
-lens distortion (each sub-pixel position is undistorted exactly to its ray)
+lens (:mod:`.lens`, the simulator's model, richer than the engine's: each
+sub-pixel position is inverted exactly to its ray by Newton's method)
 into an Open3D ``RaycastingScene``. At each hit: smooth (interpolated) normal,
 albedo (slowly varying skin, printed markers, dim walls), and irradiance from
 ambient room light, an optional key light and every pattern projector that
@@ -23,9 +24,10 @@ import cv2
 import numpy as np
 import open3d as o3d
 
-from ..camera import Camera, pixel_to_normalized, undistortion_grid
+from ..camera import Camera
 from ..imaging import sample_bilinear
 from .config import CameraConfig, ProjectorConfig
+from .lens import Lens, inverse_grid, pixel_to_normalized_fast
 from .testfield import Tower, tower_albedo
 
 LUT_STEP = 8  # px between nodes of the inverse-distortion lookup table
@@ -215,11 +217,17 @@ class PreparedLighting:
 
 
 def render(scene: Scene, camera: Camera, lighting: PreparedLighting, cc: CameraConfig,
-           rng: np.random.Generator, exposure: float, prnu_seed: int = 0):
+           rng: np.random.Generator, exposure: float, prnu_seed: int = 0, lens: Lens | None = None):
     """Render one 8-bit image (height, width) of ``scene`` seen by ``camera``.
 
     Parameters
     ----------
+    camera : Camera
+        Image size and pose (``R``, ``C``); its interior orientation is used
+        only when ``lens`` is not given.
+    lens : Lens, optional
+        The true lens the rays are traced through (default: the camera's
+        five OpenCV terms as a :class:`Lens`).
     exposure : float
         Radiance (albedo x irradiance) that fills 80% of the full well.
     prnu_seed : int
@@ -236,7 +244,8 @@ def render(scene: Scene, camera: Camera, lighting: PreparedLighting, cc: CameraC
     depth = np.zeros((H, W), np.float64)
     kinds = np.array([s.kind == "skin" for s in scene.surfaces])
     cells = np.arange(ss) / ss - 0.5
-    lut = undistortion_grid(camera, LUT_STEP)
+    lens = lens if lens is not None else Lens.from_camera(camera)
+    lut = inverse_grid(lens, W, H, LUT_STEP)
     for r0 in range(0, H, rows_per_chunk):
         r1 = min(H, r0 + rows_per_chunk)
         # stratified jittered sub-samples: a regular grid would quantize the
@@ -248,12 +257,8 @@ def render(scene: Scene, camera: Camera, lighting: PreparedLighting, cc: CameraC
         uu = (np.arange(W)[None, None, :, None] + cells[None, None, None, :]
               + rng.random((r1 - r0, ss, W, ss)) / ss)
         uv = np.column_stack([uu.ravel(), vv.ravel()])
-        # exact inverse distortion: Newton from a guess interpolated on a grid
-        gx = (uv[:, 0] + LUT_STEP) / LUT_STEP
-        gy = (uv[:, 1] + LUT_STEP) / LUT_STEP
-        guess = np.column_stack([sample_bilinear(lut[0], gx, gy, border="replicate"),
-                                 sample_bilinear(lut[1], gx, gy, border="replicate")])
-        xy = pixel_to_normalized(camera, uv, initial=guess, iterations=1)
+        # the inverse of the true lens: Newton from a guess interpolated on a grid (exact to ~1e-6 px)
+        xy = pixel_to_normalized_fast(lens, uv, lut, LUT_STEP)
         d_cam = np.column_stack([xy, np.ones(len(xy))])
         d_cam /= np.linalg.norm(d_cam, axis=1, keepdims=True)
         dirs = d_cam @ camera.R
@@ -267,7 +272,7 @@ def render(scene: Scene, camera: Camera, lighting: PreparedLighting, cc: CameraC
         radiance[r0:r1] = L.reshape(shape).mean(axis=(1, 3))
         depth[r0:r1] = z.reshape(shape).mean(axis=(1, 3))
     # --- optics: defocus (depth of field) and lens blur, blended per pixel
-    f_mm = camera.fx * (cc.pixel_size_mm)
+    f_mm = lens.fx * (cc.pixel_size_mm)
     coc_mm = f_mm ** 2 / (cc.f_number * (cc.focus_mm - f_mm)) * np.abs(depth - cc.focus_mm) / depth
     sigma = np.sqrt(cc.blur_sigma_px ** 2 + (coc_mm / cc.pixel_size_mm / 4.0) ** 2)
     blur_sigmas = np.array([cc.blur_sigma_px, 0.8, 1.2, 1.8, 2.6, 3.6, 5.0])
@@ -282,7 +287,7 @@ def render(scene: Scene, camera: Camera, lighting: PreparedLighting, cc: CameraC
     # --- sensor
     if cc.vignetting:
         jj, ii = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
-        r2 = ((jj - camera.cx) / camera.fx) ** 2 + ((ii - camera.cy) / camera.fy) ** 2
+        r2 = ((jj - lens.cx) / lens.fx) ** 2 + ((ii - lens.cy) / lens.fy) ** 2
         img /= (1.0 + r2) ** 2
     prnu = np.random.default_rng(prnu_seed).normal(1.0, cc.prnu, (H, W))
     electrons = np.clip(img * prnu / exposure * 0.8 * cc.full_well_e, 0, None)

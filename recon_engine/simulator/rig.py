@@ -14,6 +14,9 @@ from ..camera import Camera
 from ..formats import Arm, CameraSpec, Rig
 from ..pattern import make_pattern
 from .config import ScenarioConfig
+from .lens import Lens
+
+LENS_STREAM = 29  # seed-sequence key of the lens terms' random stream
 
 
 def look_at(C, target, up=(0.0, 0.0, 1.0), roll_deg: float = 0.0) -> np.ndarray:
@@ -53,17 +56,24 @@ class RigTruth:
     cameras: dict  # camera id -> Camera, as calibrated (world = test field pose 0)
     projectors: dict  # arm id -> Projector
     pivots: dict  # arm id -> (3,) pivot of the arm's swing (mm)
+    lenses: dict = None  # camera id -> lens.Lens, the true lens the renderer traces (cameras hold its engine terms)
 
 
-def make_rig(cfg: ScenarioConfig, rng: np.random.Generator, centre_height_mm: float) -> RigTruth:
+def make_rig(cfg: ScenarioConfig, rng: np.random.Generator, centre_height_mm: float,
+             rng_lens: np.random.Generator | None = None) -> RigTruth:
     """Cameras and projectors of the rig at calibration time.
 
-    Each camera has its own true focal length, principal point and lens
-    distortion drawn from ``cfg.camera``; cameras stand on an arc around the
-    rig centre, aimed at the torso centre with mounting scatter.
+    Each camera has its own true lens (:class:`lens.Lens`: focal lengths in x
+    and y, principal point, radial, decentring and thin-prism distortion)
+    drawn from ``cfg.camera``; cameras stand on an arc around the rig centre,
+    aimed at the torso centre with mounting scatter. ``rng_lens`` draws the
+    lens terms beyond the old simulator's (default: a stream of its own from
+    ``cfg.seed``).
     """
     cc, rc, pc = cfg.camera, cfg.rig, cfg.projector
-    arms, specs, cameras, projectors, pivots = [], {}, {}, {}, {}
+    if rng_lens is None:
+        rng_lens = np.random.default_rng(np.random.SeedSequence([cfg.seed, LENS_STREAM]))
+    arms, specs, cameras, projectors, pivots, lenses = [], {}, {}, {}, {}, {}
     step = np.degrees(rc.camera_spacing_mm / rc.camera_radius_mm)
     centre = np.array([0.0, 0.0, centre_height_mm])
     for k, arm_id in enumerate(rc.arms):
@@ -78,16 +88,18 @@ def make_rig(cfg: ScenarioConfig, rng: np.random.Generator, centre_height_mm: fl
             aim = centre + rng.normal(0, rc.aim_sigma_mm, 3)
             R = look_at(C, aim, roll_deg=rng.normal(0, rc.roll_sigma_deg))
             f_px = cc.focal_mm * (1 + rng.normal(0, cc.focal_spread)) / cc.pixel_size_mm
-            dist = np.array([
-                rng.uniform(*cc.k1_range), rng.normal(0, cc.k2_sigma),
-                rng.normal(0, cc.p_sigma), rng.normal(0, cc.p_sigma), rng.normal(0, cc.k3_sigma) if cc.k3_sigma else 0.0,
-            ])
-            cameras[cam_id] = Camera(
-                cc.width, cc.height, f_px, f_px * (1 + rng.normal(0, 1e-4)),
-                (cc.width - 1) / 2 + rng.normal(0, cc.principal_point_sigma_px),
-                (cc.height - 1) / 2 + rng.normal(0, cc.principal_point_sigma_px),
-                dist, R, C,
-            )
+            k1, k2 = rng.uniform(*cc.k1_range), rng.normal(0, cc.k2_sigma)
+            p1, p2 = rng.normal(0, cc.p_sigma), rng.normal(0, cc.p_sigma)
+            fy = f_px * (1 + rng.normal(0, 1e-4))
+            cx = (cc.width - 1) / 2 + rng.normal(0, cc.principal_point_sigma_px)
+            cy = (cc.height - 1) / 2 + rng.normal(0, cc.principal_point_sigma_px)
+            # the terms beyond the old lens come from their own stream (the draws above are the old ones)
+            e = rng_lens.normal(0, 1, 8)
+            lens = Lens(f_px, fy * (1 + cc.aspect_sigma * e[0]), cx, cy, k1=k1, k2=k2, k3=cc.k3_sigma * e[1],
+                        p1=p1, p2=p2, p3=cc.p3_sigma * e[2], s1=cc.prism_sigma * e[3], s2=cc.prism2_sigma * e[4],
+                        s3=cc.prism_sigma * e[5], s4=cc.prism2_sigma * e[6], skew=cc.skew_sigma * e[7])
+            lenses[cam_id] = lens
+            cameras[cam_id] = engine_camera(lens, cc.width, cc.height, R, C)
             specs[cam_id] = CameraSpec(cam_id, cc.width, cc.height, cc.pixel_size_mm, cc.focal_mm,
                                        "simulated low-cost camera")
             positions.append(C)
@@ -106,7 +118,12 @@ def make_rig(cfg: ScenarioConfig, rng: np.random.Generator, centre_height_mm: fl
     azimuths = {a.id: rc.first_arm_azimuth_deg + 360.0 * k / len(rc.arms) for k, a in enumerate(arms)}
     back = tuple(a for a, az in azimuths.items() if abs((az - 90.0 + 180.0) % 360.0 - 180.0) <= 50.0)
     rig = Rig(rc.serial, tuple(arms), specs, back)
-    return RigTruth(rig, cameras, projectors, pivots)
+    return RigTruth(rig, cameras, projectors, pivots, lenses)
+
+
+def engine_camera(lens: Lens, width: int, height: int, R, C) -> Camera:
+    """The engine's view of a true lens: its terms the engine models (the others are left out)."""
+    return Camera(width, height, lens.fx, lens.fy, lens.cx, lens.cy, lens.dist5, R, C)
 
 
 def apply_lens_changes(truth: RigTruth, changes) -> RigTruth:
@@ -118,11 +135,11 @@ def apply_lens_changes(truth: RigTruth, changes) -> RigTruth:
     """
     if not changes:
         return truth
-    cameras = dict(truth.cameras)
+    cameras, lenses = dict(truth.cameras), dict(truth.lenses)
     for cam_id, what, amount in changes:
         if cam_id not in cameras:
             raise ValueError(f"lens change for unknown camera {cam_id!r}")
-        c = cameras[cam_id]
+        c = lenses[cam_id]
         if what == "pd":
             c = replace(c, fx=c.fx * (1 + amount), fy=c.fy * (1 + amount))
         elif what == "pp_x":
@@ -130,11 +147,13 @@ def apply_lens_changes(truth: RigTruth, changes) -> RigTruth:
         elif what == "pp_y":
             c = replace(c, cy=c.cy + amount)
         elif what == "k1":
-            c = replace(c, dist=c.dist + np.array([amount, 0, 0, 0, 0]))
+            c = replace(c, k1=c.k1 + amount)
         else:
             raise ValueError(f"unknown lens change {what!r}: use pd, pp_x, pp_y or k1")
-        cameras[cam_id] = c
-    return replace(truth, cameras=cameras)
+        lenses[cam_id] = c
+        cam = cameras[cam_id]
+        cameras[cam_id] = engine_camera(c, cam.width, cam.height, cam.R, cam.C)
+    return replace(truth, cameras=cameras, lenses=lenses)
 
 
 def draw_arm_displacements(cfg: ScenarioConfig, rng: np.random.Generator, truth: RigTruth) -> dict:

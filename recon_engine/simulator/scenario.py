@@ -6,7 +6,8 @@ Layout of ``OUT``::
     captures/testfield-pose<k>/                   # test-field capture bundles
     captures/<name>/                              # torso capture bundles
     truth/scenario.json                           # every parameter and the seed
-    truth/calibration.json                        # true IOPs/EOPs at calibration time
+    truth/calibration.json                        # true IOPs/EOPs at calibration time (engine terms;
+                                                  # the whole lens in each camera's simulator_lens key)
     truth/testfield.json                          # true marker corners (tower frame)
     truth/testfield_poses.json                    # tower pose k -> world (= pose 0 frame)
     truth/<name>/calibration.json                 # true cameras at that capture (arms displaced)
@@ -71,8 +72,19 @@ def _write_ply(path: Path, vertices: np.ndarray, triangles: np.ndarray) -> None:
         raise OSError(f"{path}: could not write PLY")
 
 
-def _calibration(rig_serial: str, cameras: dict, frame: str) -> Calibration:
-    return Calibration(rig=rig_serial, calibrated_at=CAPTURED_AT, frame=frame, cameras=dict(cameras))
+def _calibration(rig_serial: str, cameras: dict, frame: str, lenses: dict | None = None) -> Calibration:
+    """The true calibration in the spec's format: the engine's terms of each true lens.
+
+    The whole true lens (with the terms the engine's model lacks: thin prism,
+    higher decentring, skew) goes into each camera's ``simulator_lens`` key,
+    which the spec's readers ignore (unknown keys); the engine-model fields
+    hold the true lens's own values of those terms, so a comparison with this
+    truth carries the model error honestly.
+    """
+    extra = {}
+    if lenses:
+        extra["camera_extra"] = {c: {"simulator_lens": lenses[c].to_dict()} for c in cameras if c in lenses}
+    return Calibration(rig=rig_serial, calibrated_at=CAPTURED_AT, frame=frame, cameras=dict(cameras), extra=extra)
 
 
 def draw_posture(cfg: ScenarioConfig, rng: np.random.Generator, visit: int, placement) -> Posture:
@@ -97,11 +109,11 @@ def _landmark(scene: Scene, spine_point, posterior) -> list:
 
 def _render_group(job):
     """Render some cameras of one capture (runs in a worker process)."""
-    surfaces, lighting, subsurface, cameras, cc, exposure, seeds, prnu_seeds = job
+    surfaces, lighting, subsurface, cameras, lenses, cc, exposure, seeds, prnu_seeds = job
     scene = Scene(surfaces)
     prepared = PreparedLighting(lighting, subsurface)
     return {c: render(scene, cam, prepared, cc, np.random.default_rng(seeds[c]), exposure,
-                      prnu_seed=prnu_seeds[c])[0]
+                      prnu_seed=prnu_seeds[c], lens=lenses[c])[0]
             for c, cam in cameras.items()}
 
 
@@ -155,7 +167,7 @@ def _simulate(out, cfg, force, progress, n_workers, pool) -> dict:
     write_rig(tmp / "rig.json", rig)
     write_testfield(tmp / "testfield.json", testfield)
     (tmp / "truth").mkdir()
-    write_calibration(tmp / "truth" / "calibration.json", _calibration(rig.serial, truth.cameras, "testfield pose 0"))
+    write_calibration(tmp / "truth" / "calibration.json", _calibration(rig.serial, truth.cameras, "testfield pose 0", truth.lenses))
     write_testfield(tmp / "truth" / "testfield.json",
                     type(testfield)(testfield.name, testfield.aruco_dictionary, tower.corners, 0.0))
     write_json(tmp / "truth" / "testfield_poses.json", {
@@ -171,7 +183,7 @@ def _simulate(out, cfg, force, progress, n_workers, pool) -> dict:
         capture_index = len(summary["captures"])
         ids = rig.camera_ids
         groups = [ids[k::n_workers] for k in range(n_workers)]
-        jobs = [(surfaces, lighting, subsurface, {c: cameras[c] for c in g}, cc, exposure,
+        jobs = [(surfaces, lighting, subsurface, {c: cameras[c] for c in g}, {c: truth.lenses[c] for c in g}, cc, exposure,
                  {c: (cfg.seed, cfg.session, 1, capture_index, ids.index(c)) for c in g},
                  {c: (cfg.seed, 2, ids.index(c)) for c in g}) for g in groups if g]
         images = {}
@@ -213,7 +225,7 @@ def _simulate(out, cfg, force, progress, n_workers, pool) -> dict:
                        cfg.subject.albedo * (cfg.projector.power + cfg.scene.torso_ambient), dict(kind="torso"))
         tdir = tmp / "truth" / name
         tdir.mkdir(parents=True)
-        write_calibration(tdir / "calibration.json", _calibration(rig.serial, cameras, "testfield pose 0"))
+        write_calibration(tdir / "calibration.json", _calibration(rig.serial, cameras, "testfield pose 0", truth.lenses))
         _write_ply(tdir / "body.ply", V, body.triangles)
         _write_ply(tdir / "torso.ply", V, body.triangles[body.torso_faces])
         posterior = posture.R @ np.array([0.0, 1.0, 0.0])
