@@ -6,7 +6,7 @@ tables and the stored pictures from top to bottom, and starts the second page
 when the first is full. What a report says is what the pages say: the verdict,
 the scan quality and the index rows come from the pages' own helpers in
 :mod:`clinic.views`, the words from :mod:`clinic.labels`, the trend picture from
-the same cached drawing the history page shows.
+the same drawing the history page shows.
 """
 
 from __future__ import annotations
@@ -17,7 +17,6 @@ import re
 import textwrap
 
 from django.core.files.storage import default_storage
-from django.http import Http404
 from django.utils import timezone
 
 from . import labels, views
@@ -38,6 +37,7 @@ not_measurable_of = views._not_measurable
 span_words = views._span
 
 MAX_PAGES = 2
+TREND_MIN_H = 130.0  # points: the trend drawn smaller than this is not worth its room
 A4_IN = (8.27, 11.69)
 PT = 72.0  # points per inch: the layout works in points from the page's top left corner
 MARGIN_X, MARGIN_TOP, MARGIN_BOTTOM = 42.0, 36.0, 46.0
@@ -307,15 +307,24 @@ def stored(name: str | None) -> bytes | None:
         return fh.read()
 
 
-def trend_png(request, patient) -> bytes | None:
-    """The history page's trend picture: the same view, so the same cache (drawn once per state of the scans)."""
-    try:
-        response = views.patient_trend(request, patient.pk)
-    except Http404:  # no visit with a torso yet
+def trend_png(patient) -> bytes | None:
+    """The history page's trend picture (the same drawing of the same scans and MDCs as views.patient_trend), drawn
+    at a page's width: the page's picture, shrunk onto paper, has lettering too small to read."""
+    import tempfile
+    from pathlib import Path
+
+    from analysis import pictures
+
+    series = [(v.date, rec.indices) for v in patient.visits.all() if (rec := best_scan(v)) and rec.indices]
+    if not series:
         return None
-    if getattr(response, "streaming", False):
-        return b"".join(response.streaming_content)
-    return response.content
+    mdc = {k: v["mdc"] for k, v in clinic_mdc(patient.clinic).items()}
+    figures = [(k, labels.label(k) + (f" ({labels.unit(k)})" if labels.unit(k) else ""))
+               for k, _ in pictures.TREND_FIGURES]
+    with tempfile.TemporaryDirectory() as tmp:
+        png = pictures.trend_picture([(str(d), ind) for d, ind in series], Path(tmp) / "trend.png", mdc=mdc,
+                                     figures=figures, size_in=(7.6, 5.0))
+        return Path(png).read_bytes()
 
 
 def produced_by(request) -> str:
@@ -389,11 +398,16 @@ def _verdict(sheets: Sheets, h: dict):
         sheets.para("Within the scanner's noise: " + "; ".join(
             f"{c['label']} ({c['change']}, noise {c['mdc']})" for c in h["within"]) + ".", 8.5, after=2)
     for nm in h["not_measurable"]:
-        sheets.para(f"⚠ Not measurable on {nm['when']}: {', '.join(nm['indices'])}. {nm['reason'][:1].upper()}"
-                    f"{nm['reason'][1:]}.", 8.5, color=WARN)
+        sheets.para(_not_measurable_words(nm), 8.5, color=WARN)
     if h["growth"]:
         sheets.para("Growth (reported apart, not a deformity): " + "; ".join(
             f"{c['label']} {c['change']} ({c['from_to']})" for c in h["growth"]) + ".", 8.5, after=2)
+
+
+def _not_measurable_words(nm: dict) -> str:
+    reason = nm["reason"].rstrip(".")
+    return (f"Not measurable on {nm['when']}" + (f": {', '.join(nm['indices'])}" if nm["indices"] else "")
+            + (f". {reason[:1].upper()}{reason[1:]}." if reason else "."))
 
 
 def _quality_words(q: dict) -> str:
@@ -482,10 +496,10 @@ def comparison_sheets(request, comp) -> Sheets:
 
     sheets.heading("Indices")
     rows = comparison_index_rows(comp, mdc)
-    sheets.table([("Index", 0.31, "left"), (_date(e_date), 0.17, "left"), (_date(l_date), 0.17, "left"),
-                  ("Change", 0.11, "right"), ("Scanner noise (MDC)", 0.11, "right"), ("Verdict", 0.13, "left")],
+    sheets.table([("Index", 0.30, "left"), (_date(e_date), 0.18, "left"), (_date(l_date), 0.18, "left"),
+                  ("Change", 0.10, "right"), ("Scanner noise (MDC)", 0.10, "right"), ("Verdict", 0.14, "left")],
                  [[(_label(r), INK, True), r["earlier"], r["later"], r["change"], _mdc_words(r["mdc"]),
-                   _verdict_cell(r["growth"], r["exceeds_mdc"])] for r in rows])
+                   _verdict_cell(r["growth"], r["exceeds_mdc"])] for r in rows], size=7.2)
     _conventions_and_trend(sheets, request, p)
     return sheets
 
@@ -527,32 +541,36 @@ def visit_sheets(request, visit) -> Sheets:
     names = [n for n in ("torso-back", "asymmetry") if n in (rec.pictures or {})]
     if names:
         sheets.heading("Torso")
-        sheets.images([stored(rec.pictures[n]) for n in names], max_h=250, min_h=160,
+        sheets.images([stored(rec.pictures[n]) for n in names], max_h=220, min_h=150,
                       caption=" · ".join(labels.picture(n)[1] for n in names) + ".")
 
     sheets.heading("Surface indices")
     nm = not_measurable_of(rec, "this scan")
     if nm:
-        sheets.para(f"⚠ Not measurable on this scan: {', '.join(nm['indices'])}. {nm['reason'][:1].upper()}"
-                    f"{nm['reason'][1:]}.", 8.5, color=WARN)
+        sheets.para(_not_measurable_words(nm), 8.5, color=WARN)
     rows = []
     for key, r in zip(labels.TABLE_KEYS, index_rows_of(rec.indices)):
-        value = r["value"] or ("not measurable" if r["not_measurable"] else "–")
+        if r["value"] is None and not r["not_measurable"]:
+            continue  # not computed for this scan (an index newer than its analysis): no row of dashes on paper
+        # the value with where it is largest on each side, in one cell (the page's two columns repeat the value)
+        value = "; ".join(r["where"]) or r["value"] or "not measurable"
         rows.append([(_label(r) + (" · growth" if r["growth"] else ""), INK, True),
                      (value, WARN if r["not_measurable"] else INK, False),
-                     "; ".join(r["where"]), "" if r["growth"] else _mdc_words((mdc.get(key) or {}).get("mdc"))])
-    sheets.table([("Index", 0.32, "left"), ("Value", 0.24, "left"), ("Where it is largest", 0.32, "left"),
-                  ("Scanner noise (MDC)", 0.12, "right")], rows)
+                     "" if r["growth"] else _mdc_words((mdc.get(key) or {}).get("mdc"))])
+    sheets.table([("Index", 0.30, "left"), ("Value, and where it is largest on each side", 0.59, "left"),
+                  ("Scanner noise (MDC)", 0.11, "right")], rows, size=7.2)
     _conventions_and_trend(sheets, request, p)
     return sheets
 
 
 def _conventions_and_trend(sheets: Sheets, request, p):
     sheets.para(SIDE_CONVENTION + " " + MDC_WORDS, 7.5, color=MUTED, after=4)
-    trend = trend_png(request, p)
-    if trend:
+    trend = trend_png(p)
+    if trend and sheets.room() < TREND_MIN_H + 45 and len(sheets.pages) >= sheets.max_pages:
+        sheets.overflow = True  # no room for a readable trend: not a heading without its picture either
+    elif trend:
         sheets.heading("Trend over the visits")
-        sheets.images([trend], max_h=330, min_h=180,
+        sheets.images([trend], max_h=330, min_h=TREND_MIN_H,
                       caption="Every index over the patient's visits; the shaded band is the scanner's noise (MDC) "
                               "about the first visit, red points lie beyond it.")
 

@@ -57,6 +57,23 @@ def test_the_reader_finds_text_and_pages_and_misses_what_is_absent():
     assert "Robin (P-99)" not in text and page_count(data) == 1
 
 
+def test_a_latin_text_uses_the_viewers_helvetica_and_any_other_an_embedded_font():
+    from clinic.report import Sheets
+
+    latin = Sheets("head", "foot")
+    latin.para("Zoë Müller-Ødegård, 4.0° ± 0.7° – ok")
+    data = latin.pdf()
+    assert b"/Helvetica" in data and b"DejaVu" not in data
+    assert "Zo\xeb M\xfcller-\xd8deg\xe5rd, 4.0\xb0 \xb1 0.7\xb0" in pdf_text(data)
+    # a name the core fonts cannot write is embedded as written, never printed with a "?"
+    other = Sheets("head", "foot")
+    other.para("\u0141ucja \u017bak \u2192 \u25b2 beyond noise")
+    data = other.pdf()
+    assert b"DejaVu" in data and b"/Helvetica" not in data
+    text = pdf_text(data)
+    assert "ucja" in text and "?ucja" not in text and "to beyond noise" in text
+
+
 def test_what_does_not_fit_on_two_pages_is_left_out_and_said():
     from clinic.report import Sheets
 
@@ -99,6 +116,9 @@ def indices(rotation, lateral, length):
             "surface_rotation_deg": sided(rotation, 0.6), "midline_rotation_deg": sided(rotation * 0.8, 0.62),
             "hump_mm": rotation * 2.5, "hump_angle_deg": rotation, "trunk_imbalance_mm": 3.0,
             "trunk_inclination_mm": -20.0, "asymmetry_mm": 6.0 + rotation / 4, "trunk_length_mm": length,
+            # newer indices (where labels.py has them, the tables are longer: the reports must still fit)
+            "cobb_estimate_deg": rotation * 1.8, "kyphotic_angle_deg": 42.0, "lordotic_angle_deg": 35.0,
+            "pelvic_obliquity_mm": 4.0, "pelvic_torsion_deg": 1.5,
             "frame": {"facing": {"method": "rig", "status": "certain"}},
             "landmarks": {"vertebra_prominens": {"confidence": "high"}, "sacral_point": {"confidence": "high"}}}
 
@@ -151,7 +171,9 @@ def _get_pdf(client, url):
     assert r["Content-Disposition"].startswith("attachment;")
     data = r.content
     assert data.startswith(b"%PDF") and 1 <= page_count(data) <= 2
-    return pdf_text(data)
+    text = pdf_text(data)
+    assert "Not everything fitted" not in text  # a usual report leaves nothing out
+    return text
 
 
 @pytest.mark.django_db
@@ -186,7 +208,7 @@ def test_a_visit_report_has_the_quality_the_headline_and_the_index_table(client,
     text = _get_pdf(client, f"/visits/{visits[1].pk}/report.pdf")
     for expected in ("Robin Report", "ID P-88", "Visit of 1 Nov 2026", "4-month follow-up",
                      "at the visit", "Scan quality: Good scan", "Since the baseline", "Surface indices",
-                     "Where it is largest", "Sideways deviation of the back's midline, largest",
+                     "where it is largest", "Sideways deviation of the back's midline, largest",
                      "Rib / lumbar hump height", "Produced by charlie on ", "Trend over the visits"):
         assert expected in text, expected
     # the first visit has nothing before it
