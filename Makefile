@@ -8,7 +8,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 SYSDEPS := libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 chromium nginx-light
 
-.PHONY: demo test venv sysdeps bench clean
+.PHONY: demo test venv sysdeps bench faults clean
 
 DEMO := demo-out
 # What a clinic does, on the embedded default (SQLite under var/, jobs in-process):
@@ -55,6 +55,12 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_reconstruct_arm.py --scenario bench-out/paper --capture visit0-a
 	$(PY) benchmarks/bench_reconstruct.py --scenario bench-out/paper --capture visit0-a visit0-b visit1-a
 	$(PY) benchmarks/bench_service.py --scenario bench-out/paper --capture visit0-a
+
+# Faults injected into a running clinic (needs PostgreSQL on 127.0.0.1:5432 and redis-server; about 15 min):
+# the broker stopped, workers and pool children killed, database connections cut. Prints, per scenario,
+# jobs completed / lost / stuck and files orphaned / missing (docs/operations.md); exits 1 unless all zero.
+faults: $(STAMP)
+	$(PY) benchmarks/bench_faults.py
 
 clean:
 	rm -rf $(VENV) demo-out bench-out var .pytest_cache
