@@ -98,7 +98,7 @@ class Sheets:
         self.pages.append(fig)
         self.y = MARGIN_TOP
         if len(self.pages) > 1:  # every sheet names its patient: pages get separated
-            self._text(MARGIN_X, self.y, self.running_head, 8, color=MUTED)
+            self.text_at(MARGIN_X, self.y, self.running_head, 8, color=MUTED)
             self.y += 16
 
     @property
@@ -122,7 +122,7 @@ class Sheets:
     def _fig_xy(self, x, y):
         return x / self.w, 1 - y / self.h
 
-    def _text(self, x, y, s, size, bold=False, color=INK, ha="left"):
+    def text_at(self, x, y, s, size, bold=False, color=INK, ha="left"):
         s = plain(s)
         self.core = self.core and core_font_fits(s)
         # parse_math=False: a "$" in a name or a note is text, not mathematics
@@ -152,7 +152,7 @@ class Sheets:
         for line in self.wrap(s, size, self.width - indent, bold):
             if not self.ensure(size * leading):
                 return
-            self._text(MARGIN_X + indent, self.y, line, size, bold, color)
+            self.text_at(MARGIN_X + indent, self.y, line, size, bold, color)
             self.y += size * leading
         self.y += after
 
@@ -226,7 +226,7 @@ class Sheets:
             for (lines, color, bold), w, (_, _, align) in zip(prepared, widths, columns):
                 for k, line in enumerate(lines):
                     tx = x + w - pad if align == "right" else x + pad
-                    self._text(tx, self.y + pad + k * sz * leading, line, sz, bold, color, ha=align)
+                    self.text_at(tx, self.y + pad + k * sz * leading, line, sz, bold, color, ha=align)
                 x += w
             self.y += height
 
@@ -249,7 +249,7 @@ class Sheets:
             return
         self._finished = True
         if self.overflow:  # said on the paper itself, so a reader knows the screen has more
-            self._text(MARGIN_X, self.h - MARGIN_BOTTOM + 4, "Not everything fitted on two pages: the page on "
+            self.text_at(MARGIN_X, self.h - MARGIN_BOTTOM + 4, "Not everything fitted on two pages: the page on "
                        "screen has the rest.", 7.5, color=WARN)
         n = len(self.pages)
         for k, fig in enumerate(self.pages, 1):
@@ -307,15 +307,17 @@ def stored(name: str | None) -> bytes | None:
         return fh.read()
 
 
-def trend_png(patient) -> bytes | None:
-    """The history page's trend picture (the same drawing of the same scans and MDCs as views.patient_trend), drawn
-    at a page's width: the page's picture, shrunk onto paper, has lettering too small to read."""
+def trend_png(patient, until=None) -> bytes | None:
+    """The history page's trend picture (the same drawing of the same scans and MDCs as views.patient_trend) of the
+    visits up to ``until``, drawn at a page's width: the page's picture, shrunk onto paper, has lettering too small
+    to read. A report of an earlier visit shows the trend as it stood then."""
     import tempfile
     from pathlib import Path
 
     from analysis import pictures
 
-    series = [(v.date, rec.indices) for v in patient.visits.all() if (rec := best_scan(v)) and rec.indices]
+    visits = patient.visits.filter(date__lte=until) if until else patient.visits.all()
+    series = [(v.date, rec.indices) for v in visits if (rec := best_scan(v)) and rec.indices]
     if not series:
         return None
     mdc = {k: v["mdc"] for k, v in clinic_mdc(patient.clinic).items()}
@@ -323,7 +325,7 @@ def trend_png(patient) -> bytes | None:
                for k, _ in pictures.TREND_FIGURES]
     with tempfile.TemporaryDirectory() as tmp:
         png = pictures.trend_picture([(str(d), ind) for d, ind in series], Path(tmp) / "trend.png", mdc=mdc,
-                                     figures=figures, size_in=(7.6, 5.0))
+                                     figures=figures, size_in=(8.6, 5.4))  # its panel titles need 8.6 in
         return Path(png).read_bytes()
 
 
@@ -335,8 +337,8 @@ def produced_by(request) -> str:
 
 
 def _header(sheets: Sheets, clinic, title: str, p, ctx: dict, subtitle: str):
-    sheets._text(MARGIN_X, sheets.y, clinic.name, 10, bold=True, color="#1d3557")
-    sheets._text(MARGIN_X + sheets.width, sheets.y, title, 10, color="#1d3557", ha="right")
+    sheets.text_at(MARGIN_X, sheets.y, clinic.name, 10, bold=True, color="#1d3557")
+    sheets.text_at(MARGIN_X + sheets.width, sheets.y, title, 10, color="#1d3557", ha="right")
     sheets.y += 15
     sheets.rule(color="#1d3557", lw=1.2)
     sheets.y += 2
@@ -500,7 +502,7 @@ def comparison_sheets(request, comp) -> Sheets:
                   ("Change", 0.10, "right"), ("Scanner noise (MDC)", 0.10, "right"), ("Verdict", 0.14, "left")],
                  [[(_label(r), INK, True), r["earlier"], r["later"], r["change"], _mdc_words(r["mdc"]),
                    _verdict_cell(r["growth"], r["exceeds_mdc"])] for r in rows], size=7.2)
-    _conventions_and_trend(sheets, request, p)
+    _conventions_and_trend(sheets, p, l_date)
     return sheets
 
 
@@ -559,13 +561,13 @@ def visit_sheets(request, visit) -> Sheets:
                      "" if r["growth"] else _mdc_words((mdc.get(key) or {}).get("mdc"))])
     sheets.table([("Index", 0.30, "left"), ("Value, and where it is largest on each side", 0.59, "left"),
                   ("Scanner noise (MDC)", 0.11, "right")], rows, size=7.2)
-    _conventions_and_trend(sheets, request, p)
+    _conventions_and_trend(sheets, p, visit.date)
     return sheets
 
 
-def _conventions_and_trend(sheets: Sheets, request, p):
+def _conventions_and_trend(sheets: Sheets, p, until):
     sheets.para(SIDE_CONVENTION + " " + MDC_WORDS, 7.5, color=MUTED, after=4)
-    trend = trend_png(p)
+    trend = trend_png(p, until)
     if trend and sheets.room() < TREND_MIN_H + 45 and len(sheets.pages) >= sheets.max_pages:
         sheets.overflow = True  # no room for a readable trend: not a heading without its picture either
     elif trend:
