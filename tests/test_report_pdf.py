@@ -254,3 +254,17 @@ def test_the_visit_and_comparison_pages_link_their_report(client, charlie, repor
     r = client.get(f"/patients/{patient.pk}/compare/?earlier_scan={comp.earlier.pk}&later_scan={comp.later.pk}")
     html = r.content.decode()
     assert f'href="/comparisons/{comp.pk}/report.pdf"' in html and "Download report (PDF)" in html
+
+
+@pytest.mark.django_db
+def test_a_visit_without_a_torso_has_a_one_page_report_and_no_link(client, charlie, reported_patient):
+    from clinic.models import Visit
+
+    patient, visits, comp = reported_patient
+    empty = Visit.objects.create(patient=patient, date="2026-11-20", reason="brace check")
+    client.force_login(charlie)
+    assert "Download report (PDF)" not in client.get(f"/visits/{empty.pk}/").content.decode()
+    r = client.get(f"/visits/{empty.pk}/report.pdf")
+    assert r.status_code == 200 and page_count(r.content) == 1
+    text = pdf_text(r.content)
+    assert "Visit of 20 Nov 2026" in text and "No scan has been reconstructed for this visit." in text
