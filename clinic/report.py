@@ -491,7 +491,10 @@ def comparison_sheets(request, comp) -> Sheets:
     _verdict(sheets, verdict)
 
     sheets.heading("Deformation map")
-    sheets.images([stored((comp.pictures or {}).get("deformation"))], max_h=330, min_h=200,
+    deformation = stored((comp.pictures or {}).get("deformation"))
+    if deformation is None:
+        sheets.para("The deformation map of these two scans has not been drawn.", 8.5, color=MUTED)
+    sheets.images([deformation], max_h=330, min_h=200,
                   caption="How the surface moved from the earlier scan to the later one, in mm, with the colour "
                           "scale on the map (red: outward, blue: inward), after lining the two up on the parts "
                           "that did not change.")

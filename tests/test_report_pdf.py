@@ -268,3 +268,24 @@ def test_a_visit_without_a_torso_has_a_one_page_report_and_no_link(client, charl
     assert r.status_code == 200 and page_count(r.content) == 1
     text = pdf_text(r.content)
     assert "Visit of 20 Nov 2026" in text and "No scan has been reconstructed for this visit." in text
+
+
+@pytest.mark.django_db
+def test_a_same_day_rescan_report_says_repeatability_not_change(client, charlie, reported_patient):
+    from clinic.models import CaptureSession, Comparison, Job, Reconstruction
+
+    patient, visits, comp = reported_patient
+    first = comp.later
+    session = CaptureSession.objects.create(rig=first.session.rig, kind="torso", visit=visits[1],
+                                            manifest={"images": []}, manifest_sha256="r", idempotency_key="report-r",
+                                            captured_at="2026-11-01", state=CaptureSession.FINALIZED)
+    job = Job.objects.create(kind=Job.RECONSTRUCTION, rig=session.rig, session=session, state=Job.SUCCEEDED)
+    again = Reconstruction.objects.create(job=job, session=session, status="ok", points=1000,
+                                          report={"registration": {"pairs": []}},
+                                          indices=indices(12.3, 14.2, 478.5), pictures={})
+    repeat = Comparison.objects.create(earlier=first, later=again, report={"facing": {"consistent": True}})
+    client.force_login(charlie)
+    text = _get_pdf(client, f"/comparisons/{repeat.pk}/report.pdf")
+    assert "Same-day re-scan of 1 Nov 2026" in text and "repeatability, not a change" in text
+    assert "Two scans of the same visit" in text and "Between these scans" not in text
+    assert "The deformation map of these two scans has not been drawn." in text
