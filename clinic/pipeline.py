@@ -362,14 +362,33 @@ def reconstruct_arm(job_id: int, arm: str) -> str:
             surface, report = engine_reconstruct_arm(capture, rig, calibration, arm)
         task.surface.save(f"arm-{arm}.npz", ContentFile(arm_surface_bytes(surface)), save=False)
         if not mine.update(surface=task.surface.name, report=report, state=Job.SUCCEEDED, lease_until=None):
+            _discard_unnamed_surface(task.surface.name)
             return "claim lost"  # taken over after this worker stalled past its lease: the other one finishes
     except TRANSIENT:
+        # stored, but the update naming it was lost with the connection
+        _discard_unnamed_surface(task.surface.name, reconnect=True)
         mine.update(state=Job.QUEUED, claimed=None, lease_until=None)
         raise
     except Exception as exc:
         if not mine.update(state=Job.FAILED, error=_engine_error(exc), lease_until=None):
             return "claim lost"
     return "arms done" if arms_finished(job_id) else "arm done"
+
+
+def _discard_unnamed_surface(name: str, reconnect=False):
+    """Delete an arm surface this step stored if no row names it, checked on a new connection (the old one may
+    be the one lost). When the database cannot say, the file stays: ``manage.py check_files`` reports it."""
+    if not name:
+        return
+    if reconnect and not connection.in_atomic_block:
+        connection.close()
+    try:
+        if ArmTask.objects.filter(surface=name).exists():
+            return
+    except TRANSIENT:
+        log.warning("arm surface %s kept: the database cannot say whether a row names it", name)
+        return
+    default_storage.delete(name)
 
 
 def arms_finished(job_id) -> bool:
