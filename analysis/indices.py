@@ -5,12 +5,15 @@ Pipeline (all in the patient frame of :mod:`analysis.frame`):
 1. posterior direction detected (or given), mid-sagittal plane from registering
    the torso to its own mirror image: the patient frame;
 2. the back's depth map (:mod:`analysis.backsurface`);
-3. VP and SP (:mod:`analysis.landmarks`), or the clinician's corrections;
-4. horizontal sections between them; in each, the symmetry point (the line of
-   symmetry) and its lateral deviation, the surface rotation (the whole
-   transverse section's), the skin normal's rotation at the symmetry line
-   (rasterstereography's figure), the spine midline estimate, the hump;
-5. summaries per region and overall, trunk imbalance, whole-torso asymmetry.
+3. VP, SP and the lumbar dimples (:mod:`analysis.landmarks`), or the
+   clinician's corrections;
+4. horizontal sections between VP and SP; in each, the symmetry point (the
+   line of symmetry) and its lateral deviation, the surface rotation (the
+   whole transverse section's), the skin normal's rotation at the symmetry
+   line (rasterstereography's figure), the spine midline estimate, the hump;
+5. summaries per region and overall, trunk imbalance, whole-torso asymmetry;
+   the kyphotic and lordotic angles, the pelvis's obliquity and torsion at
+   the dimples and a Cobb-angle estimate (:mod:`analysis.profiles`).
 
 Signs: lateral values positive towards the patient's right; surface rotation
 positive when the back's right side comes backwards (the vertebral bodies
@@ -27,12 +30,15 @@ import numpy as np
 from .backsurface import DepthMap, back_points, central_extent, depth_map, slope_at, symmetry_point
 from .config import AnalysisConfig, IndicesConfig, RigidConfig
 from .frame import PatientFrame, detect_posterior, frame_from_posterior, symmetry_plane
-from .landmarks import detect_landmarks, midline_profile
+from .landmarks import broad_slope, detect_landmarks, find_dimples, midline_profile, sagittal_inclination
+from .profiles import cobb_estimate, pelvic_figures, sagittal_angles
 from .torso import PlaneIndex, Torso
 
 FORMAT = "torso-indices/1"
-LANDMARKS = ("vertebra_prominens", "sacral_point")
-_AUTO = {"vertebra_prominens": "vp", "sacral_point": "sp"}
+CORE_LANDMARKS = ("vertebra_prominens", "sacral_point")  # the trunk's ends: every section rests on them
+DIMPLES = ("dimple_left", "dimple_right")  # the lumbar dimples: the pelvic figures rest on them
+LANDMARKS = CORE_LANDMARKS + DIMPLES
+_AUTO = {"vertebra_prominens": "vp", "sacral_point": "sp", "dimple_left": "dimple", "dimple_right": "dimple"}
 
 
 @dataclass
@@ -211,21 +217,31 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
                     auto = detect_landmarks(P, back, dmap, ic)
             except ValueError:
                 pass
-    lm = {k: auto[k] for k in LANDMARKS}
-    source = {k: "auto" for k in LANDMARKS}
-    for k, v in (landmarks or {}).items():
+    for k in landmarks or {}:
         if k not in LANDMARKS:
             raise ValueError(f"unknown landmark {k!r}: choose from {', '.join(LANDMARKS)}")
-        if v is None:
-            continue
-        q = frame.to_patient(np.asarray(v, float).reshape(3))
-        y = dmap.at(q[0], q[2])
-        lm[k] = np.array([q[0], y if np.isfinite(y) else q[1], q[2]])
-        source[k] = "clinician"
+    lm = {k: auto[k] for k in CORE_LANDMARKS}
+    source = {k: "auto" for k in LANDMARKS}
+
+    def corrected(names):
+        for k in names:
+            v = (landmarks or {}).get(k)
+            if v is None:
+                continue
+            q = frame.to_patient(np.asarray(v, float).reshape(3))
+            y = dmap.at(q[0], q[2])
+            lm[k] = np.array([q[0], y if np.isfinite(y) else q[1], q[2]])
+            source[k] = "clinician"
+
+    corrected(CORE_LANDMARKS)
     vp, sp = lm["vertebra_prominens"], lm["sacral_point"]
     if not vp[2] > sp[2] + 100:
         raise ValueError(f"vertebra prominens ({vp[2]:.0f} mm) not well above the sacral point ({sp[2]:.0f} mm)")
     length = float(vp[2] - sp[2])
+    # the dimples are searched above the sacral point in use (the clinician's, when corrected)
+    auto.update(find_dimples(dmap, sp[2], length, auto["midline"], sp[0]))
+    lm.update({k: auto[k] for k in DIMPLES})
+    corrected(DIMPLES)
 
     sections = []
     mz, mx, _ = auto["midline"]
@@ -306,6 +322,16 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
     def apex_of(key):
         return max(sections, key=lambda s: abs(s[key]) if np.isfinite(s[key]) else -1)
 
+    sagittal = sagittal_angles(mz, auto["midline"][2][okm], sp[2], vp[2])
+    cobb = cobb_estimate([s["z_mm"] for s in sections], [s["spine_lateral_deviation_mm"] for s in sections],
+                         sp[2], vp[2])
+    if np.all(np.isfinite(lm["dimple_left"])) and np.all(np.isfinite(lm["dimple_right"])):
+        slope = broad_slope(dmap)
+        pelvis = pelvic_figures(lm["dimple_left"], lm["dimple_right"],
+                                sagittal_inclination(dmap, lm["dimple_left"][0], lm["dimple_left"][2], slope),
+                                sagittal_inclination(dmap, lm["dimple_right"][0], lm["dimple_right"][2], slope))
+    else:
+        pelvis = {k: None for k in PELVIC}
     apex, spine_apex = apex_of("lateral_deviation_mm"), apex_of("spine_lateral_deviation_mm")
     rot_apex, mid_apex = apex_of("surface_rotation_deg"), apex_of("midline_rotation_deg")
     lm_rig = {k: frame.to_rig(v) for k, v in lm.items()}
@@ -323,6 +349,15 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         "trunk_length_mm": float(np.linalg.norm(vp - sp)),
         "asymmetry_mm": asym_fig["mean_abs_mm"],
         "asymmetry": asym_fig,
+        "kyphotic_angle_deg": sagittal["kyphotic_angle_deg"] if sagittal else None,
+        "lordotic_angle_deg": sagittal["lordotic_angle_deg"] if sagittal else None,
+        "sagittal_levels": sagittal["levels"] if sagittal else None,
+        # signed as the other lateral figures: + when the major curve is convex to the patient's right
+        "cobb_estimate_deg": (cobb["value_deg"] * (1 if cobb["side"] == "right" else -1)) if cobb else None,
+        "cobb_estimate": {**cobb, "note": COBB_NOTE} if cobb else None,
+        "pelvic_obliquity_mm": pelvis["pelvic_obliquity_mm"],
+        "pelvic_obliquity_deg": pelvis["pelvic_obliquity_deg"],
+        "pelvic_torsion_deg": pelvis["pelvic_torsion_deg"],
         "apex": {"lateral_deviation": {"level": apex["level"], "z_mm": apex["z_mm"],
                                        "value_mm": apex["lateral_deviation_mm"]},
                  "spine_lateral_deviation": {"level": spine_apex["level"], "z_mm": spine_apex["z_mm"],
@@ -331,7 +366,8 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
                                       "value_deg": rot_apex["surface_rotation_deg"]},
                  "midline_rotation": {"level": mid_apex["level"], "z_mm": mid_apex["z_mm"],
                                       "value_deg": mid_apex["midline_rotation_deg"]}},
-        "landmarks": {k: {"position_mm": lm_rig[k].tolist(), "source": source[k],
+        "landmarks": {k: {"position_mm": lm_rig[k].tolist() if np.all(np.isfinite(lm_rig[k])) else None,
+                          "source": source[k],
                           "method": auto[_AUTO[k] + "_method"] if source[k] == "auto" else "clinician",
                           "confidence": auto[_AUTO[k] + "_confidence"] if source[k] == "auto" else "clinician",
                           "evidence_mm": auto[_AUTO[k] + "_evidence_mm"]} for k in LANDMARKS},
@@ -346,24 +382,35 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         withhold(report, f"not measurable on this scan: the patient's facing is uncertain ({facing.get('reason')}); "
                          "mark the vertebra prominens on the back to settle it")
     else:
-        unsure = [k for k in LANDMARKS if source[k] == "auto" and auto[_AUTO[k] + "_confidence"] != "high"]
+        unsure = [k for k in CORE_LANDMARKS if source[k] == "auto" and auto[_AUTO[k] + "_confidence"] != "high"]
         if unsure:
             names = " and ".join(k.replace("_", " ") for k in unsure)
             withhold(report, f"not measurable on this scan: the {names} could not be found with confidence "
                              f"({', '.join(auto[_AUTO[k] + '_method'] for k in unsure)}); mark the landmark",
                      LANDMARKED, landmarks=unsure)
+        unsure = [k for k in DIMPLES if source[k] == "auto" and auto["dimple_confidence"] != "high"]
+        if unsure:
+            withhold(report, f"the pelvic figures are not measurable on this scan: the lumbar dimples could not be "
+                             f"found with confidence ({auto['dimple_method']}); mark them", PELVIC, landmarks=unsure)
     return TorsoAnalysis(report, frame, dmap, lm_rig, asym, sections)
 
 
 # figures that read the back in the patient frame: with the back and front (and so left and right) in doubt,
 # none of them can be told; the trunk's length and the whole-torso asymmetry do not depend on the facing
 SIDED = ("lateral_deviation_mm", "surface_rotation_deg", "spine_lateral_deviation_mm", "midline_rotation_deg",
-         "hump_mm", "hump_angle_deg", "trunk_imbalance_mm", "trunk_inclination_mm", "regions", "apex")
+         "hump_mm", "hump_angle_deg", "trunk_imbalance_mm", "trunk_inclination_mm", "regions", "apex",
+         "cobb_estimate_deg", "cobb_estimate", "pelvic_obliquity_mm", "pelvic_obliquity_deg", "pelvic_torsion_deg")
+
+# figures read at the lumbar dimples
+PELVIC = ("pelvic_obliquity_mm", "pelvic_obliquity_deg", "pelvic_torsion_deg")
+
+COBB_NOTE = ("an estimate of the major curve's Cobb angle from the back's surface, not a radiograph; its error "
+             "against a simulated spine is given in docs/analysis.md")
 
 
 # figures that rest on VP and SP (the sections between them, the line joining them, the length): a landmark
 # placed by a fallback makes them not measurable; the whole-torso asymmetry does not rest on them
-LANDMARKED = SIDED + ("trunk_length_mm",)
+LANDMARKED = SIDED + ("trunk_length_mm", "kyphotic_angle_deg", "lordotic_angle_deg", "sagittal_levels")
 
 
 def withhold(report: dict, reason: str, keys=SIDED, landmarks=()) -> dict:
@@ -373,9 +420,19 @@ def withhold(report: dict, reason: str, keys=SIDED, landmarks=()) -> dict:
         if key not in report:
             continue
         v = report[key]
-        report[key] = {k: None for k in v} if isinstance(v, dict) and key not in ("regions", "apex") else None
-    report["not_measurable"] = {"indices": list(keys), "reason": reason, "mark": list(landmarks)}
+        report[key] = {k: None for k in v} if isinstance(v, dict) and key not in NESTED else None
+    before = report.get("not_measurable")
+    if before:  # a second reason (e.g. the dimples after the trunk's ends): both are told
+        report["not_measurable"] = {
+            "indices": list(dict.fromkeys([*before["indices"], *keys])),
+            "reason": f"{before['reason']}; {reason}", "mark": list(dict.fromkeys([*before["mark"], *landmarks]))}
+    else:
+        report["not_measurable"] = {"indices": list(keys), "reason": reason, "mark": list(landmarks)}
     return report
+
+
+# withheld whole, not key by key (their keys are levels and names, not figures)
+NESTED = ("regions", "apex", "cobb_estimate", "sagittal_levels")
 
 
 def _clinician_facing(torso: Torso, landmarks: dict | None) -> dict | None:

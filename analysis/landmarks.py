@@ -1,4 +1,4 @@
-"""Landmarks of the back found automatically: vertebra prominens (VP) and sacral point (SP).
+"""Landmarks of the back found automatically: vertebra prominens (VP), sacral point (SP), lumbar dimples.
 
 Both are found in the patient frame (x left, y posterior, z up) from the shape:
 
@@ -15,11 +15,15 @@ Both are found in the patient frame (x left, y posterior, z up) from the shape:
   the midline profile's deepest point in the lower 60 % of the back, then the
   middle of the crest below it (low confidence when no crest is seen).
 
-Formetric finds the lumbar dimples (the posterior superior iliac spines) as
-the two concavities either side of SP; on a smooth skin they may not exist,
-so they are not used here. A clinician corrects either landmark by passing
-its rig-frame position (``overrides``); the correction is snapped to the
-back's surface at that height.
+- The lumbar dimples (skin over the posterior superior iliac spines), as
+  rasterstereography finds them: the two deepest hollows against the back's
+  broad shape either side of the midline just above SP
+  (:func:`find_dimples`); on a heavy body fat fills them, and they are then
+  reported with low confidence (the pelvic figures are not measurable until
+  a clinician marks them).
+
+A clinician corrects any landmark by passing its rig-frame position; the
+correction is snapped to the back's surface at that height.
 """
 
 from __future__ import annotations
@@ -239,3 +243,124 @@ def point_on_midline(dmap: DepthMap, z: float, xs=None, zs=None, cfg=None, below
         if np.isfinite(y):
             break
     return np.array([x0, y, z])
+
+
+# the lumbar dimples: cup-shaped hollows standing out from the back's curvature by this much (the smaller
+# principal curvature, 1/m, against its 20 mm neighbourhood), either side of the midline, at most this far
+# apart in height and in distance from the midline (a pair, as the two posterior superior iliac spines are)
+DIMPLE_MIN_CUP = 15.0
+DIMPLE_CURVATURE_MM = 6.0  # scale (sigma) at which the curvature is read
+DIMPLE_BROAD_MM = 20.0  # the neighbourhood the hollows stand out from
+DIMPLE_LATERAL_MM = (25.0, 80.0)  # from the midline
+DIMPLE_MAX_HEIGHT_DIFFERENCE_MM = 35.0
+DIMPLE_MAX_SPREAD_DIFFERENCE_MM = 25.0
+
+
+def broad_depth(dmap: DepthMap, sigma_mm: float = DIMPLE_BROAD_MM) -> np.ndarray:
+    """The depth map smoothed to the back's broad shape (normalized Gaussian, holes left NaN)."""
+    from scipy.ndimage import gaussian_filter
+
+    g = float(dmap.x[1] - dmap.x[0])
+    seen = np.isfinite(dmap.depth)
+    num = gaussian_filter(np.where(seen, dmap.depth, 0.0), sigma_mm / g, mode="constant")
+    den = gaussian_filter(seen.astype(float), sigma_mm / g, mode="constant")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(seen & (den > 0.3), num / den, np.nan)
+
+
+def cup_prominence(dmap: DepthMap) -> np.ndarray:
+    """How much the back is cup-shaped at each cell beyond its neighbourhood (1/m, NaN off the back).
+
+    The smaller principal curvature of the depth surface (from Gaussian derivatives at
+    ``DIMPLE_CURVATURE_MM``) is positive only in a cup, a hollow in every direction: a furrow (the spine's)
+    is flat along its length and the trunk is convex across, so neither reads as a cup. Against its own
+    ``DIMPLE_BROAD_MM`` neighbourhood, so that the trunk's convexity does not hide a shallow dimple.
+    """
+    from scipy.ndimage import gaussian_filter
+
+    g = float(dmap.x[1] - dmap.x[0])
+    seen = np.isfinite(dmap.depth)
+    broad = broad_depth(dmap)
+    filled = np.where(seen, dmap.depth, broad)
+    filled = np.where(np.isfinite(filled), filled, np.nanmean(dmap.depth) if seen.any() else 0.0)
+    s = DIMPLE_CURVATURE_MM / g
+    yxx = gaussian_filter(filled, s, order=(0, 2)) / g ** 2
+    yzz = gaussian_filter(filled, s, order=(2, 0)) / g ** 2
+    yxz = gaussian_filter(filled, s, order=(1, 1)) / g ** 2
+    # y is posterior: a hollow is a minimum of y, where both curvatures of y are positive
+    smaller = 0.5 * (yxx + yzz) - np.sqrt(0.25 * (yxx - yzz) ** 2 + yxz ** 2)
+    cup = 1000.0 * (smaller - gaussian_filter(smaller, DIMPLE_BROAD_MM / g))
+    return np.where(seen, cup, np.nan)
+
+
+def find_dimples(dmap: DepthMap, z_sp: float, length_mm: float, midline, x_sp: float = 0.0) -> dict:
+    """The lumbar dimples (patient frame, mm): the most cup-shaped pair of points either side of the midline,
+    from 5 mm above the sacral point to 18 % of the trunk above it (:func:`cup_prominence`), each a peak of
+    the cup prominence.
+
+    Returns ``{"dimple_left", "dimple_right": point (3,) or NaNs, "dimple_confidence": "high"/"low",
+    "dimple_evidence_mm": the weaker cup's prominence (1/m, kept under this key for the report's shape),
+    "dimple_method"}``. Confidence is high when both stand out by ``DIMPLE_MIN_CUP`` and lie at similar
+    heights and distances from the midline, as the two posterior superior iliac spines do; a heavy body
+    whose fat fills them, or a surface that stops above the pelvis, gives low.
+    """
+    zs_m, xs_m = midline[0], midline[1]
+    cup = cup_prominence(dmap)
+    Z, X = np.meshgrid(dmap.z, dmap.x, indexing="ij")
+    ok = np.isfinite(xs_m)
+    x_mid = np.interp(dmap.z, zs_m[ok], xs_m[ok]) if ok.sum() >= 2 else np.full(len(dmap.z), x_sp)
+    across = X - x_mid[:, None]
+    # a cup's own peak only (a cell at the window's edge on a rising slope is no hollow), from just above SP
+    from scipy.ndimage import maximum_filter
+
+    peak = cup >= maximum_filter(np.where(np.isfinite(cup), cup, -np.inf), size=5)
+    band = (Z >= z_sp + 5.0) & (Z <= z_sp + 0.18 * length_mm) & np.isfinite(cup) & peak
+    nan3 = np.full(3, np.nan)
+    out = {"dimple_left": nan3, "dimple_right": nan3, "dimple_confidence": "low", "dimple_evidence_mm": 0.0,
+           "dimple_method": "no hollows seen"}
+    cand = {}
+    for name, sign in (("dimple_left", 1.0), ("dimple_right", -1.0)):
+        win = band & (sign * across >= DIMPLE_LATERAL_MM[0]) & (sign * across <= DIMPLE_LATERAL_MM[1])
+        if win.sum() < 1:
+            return out
+        v = np.where(win, cup, -np.inf)
+        best = np.argsort(v, axis=None)[::-1][:40]  # the strongest cells of the side
+        best = best[np.isfinite(v.flat[best])]
+        i, j = np.unravel_index(best, v.shape)
+        cand[name] = (i, j, v[i, j], np.abs(across[i, j]))
+    (il, jl, vl, al), (ir, jr, vr, ar) = cand["dimple_left"], cand["dimple_right"]
+    # the pair: both cups strong, at alike heights and spreads
+    paired = (np.abs(dmap.z[il][:, None] - dmap.z[ir][None, :]) <= DIMPLE_MAX_HEIGHT_DIFFERENCE_MM) & \
+        (np.abs(al[:, None] - ar[None, :]) <= DIMPLE_MAX_SPREAD_DIFFERENCE_MM)
+    strength = np.where(paired, np.minimum(vl[:, None], vr[None, :]), -np.inf)
+    if not np.isfinite(strength).any():
+        a, b = 0, 0
+        method = "hollows unlike a pair"
+    else:
+        a, b = np.unravel_index(int(np.argmax(strength)), strength.shape)
+        method = "cups either side of the sacrum"
+    evidence = float(min(vl[a], vr[b]))
+    left = np.array([dmap.x[jl[a]], dmap.depth[il[a], jl[a]], dmap.z[il[a]]])
+    right = np.array([dmap.x[jr[b]], dmap.depth[ir[b], jr[b]], dmap.z[ir[b]]])
+    out.update({"dimple_left": left, "dimple_right": right, "dimple_evidence_mm": evidence,
+                "dimple_method": method})
+    if method.startswith("cups") and evidence >= DIMPLE_MIN_CUP:
+        out["dimple_confidence"] = "high"
+    elif method.startswith("cups"):
+        out["dimple_method"] = "hollows too shallow"
+    return out
+
+
+def broad_slope(dmap: DepthMap, broad: np.ndarray | None = None) -> np.ndarray:
+    """d(depth)/dz of the back's broad shape on the depth map's grid (mm/mm)."""
+    return np.gradient(broad_depth(dmap) if broad is None else broad, dmap.z, axis=0)
+
+
+def sagittal_inclination(dmap: DepthMap, x: float, z: float, slope_z: np.ndarray | None = None) -> float:
+    """How far the back's broad surface at (x, z) faces upwards (deg): its normal (0, 1, -dy/dz) tilts up from
+    the horizontal by atan(-dy/dz). NaN off the seen back."""
+    slope_z = broad_slope(dmap) if slope_z is None else slope_z
+    i = int(np.clip(np.round(np.interp(z, dmap.z, np.arange(len(dmap.z)))), 0, len(dmap.z) - 1))
+    j = int(np.clip(np.round(np.interp(x, dmap.x, np.arange(len(dmap.x)))), 0, len(dmap.x) - 1))
+    v = slope_z[i, j]
+    return float(np.degrees(np.arctan(-v))) if np.isfinite(v) else float("nan")

@@ -38,7 +38,9 @@ def flatten(d: dict, prefix: str = "") -> dict:
 INDEX_FIGURES = ("lateral_deviation_mm.rms", "lateral_deviation_mm.max", "surface_rotation_deg.rms",
                  "surface_rotation_deg.max", "spine_lateral_deviation_mm.rms", "spine_lateral_deviation_mm.max",
                  "midline_rotation_deg.rms", "midline_rotation_deg.max", "hump_mm", "hump_angle_deg",
-                 "trunk_imbalance_mm", "trunk_inclination_mm", "trunk_length_mm", "asymmetry_mm")
+                 "trunk_imbalance_mm", "trunk_inclination_mm", "trunk_length_mm", "asymmetry_mm",
+                 "kyphotic_angle_deg", "lordotic_angle_deg", "cobb_estimate_deg", "pelvic_obliquity_mm",
+                 "pelvic_torsion_deg")
 
 
 def mdc_from_index_pairs(pairs, figures=INDEX_FIGURES) -> dict:

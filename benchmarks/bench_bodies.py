@@ -40,17 +40,20 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from analysis.indices import analyse_torso  # noqa: E402
+from analysis.profiles import cobb_estimate, sagittal_angles  # noqa: E402
 from analysis.repeatability import flatten, index_changes, mdc_from_index_pairs  # noqa: E402
 from analysis.synthetic import scan_surface  # noqa: E402
 from bench_analysis import true_symmetry_deviation  # noqa: E402
 from recon_engine.simulator.config import preset  # noqa: E402
+from recon_engine.simulator.bodies import curve_profiles  # noqa: E402
 from recon_engine.simulator.posed import posed_subject, posture_like  # noqa: E402
 from recon_engine.simulator.rig import rotation_about  # noqa: E402
 
-LANDMARK_KEYS = ("vertebra_prominens", "sacral_point")
+LANDMARK_KEYS = ("vertebra_prominens", "sacral_point", "dimple_left", "dimple_right")
 FIGURES = ("surface_rotation_deg.max", "surface_rotation_deg.rms", "lateral_deviation_mm.max",
            "lateral_deviation_mm.rms", "spine_lateral_deviation_mm.max", "midline_rotation_deg.max", "hump_mm",
-           "trunk_imbalance_mm", "trunk_length_mm", "asymmetry_mm")
+           "trunk_imbalance_mm", "trunk_length_mm", "asymmetry_mm", "kyphotic_angle_deg", "lordotic_angle_deg",
+           "cobb_estimate_deg", "pelvic_obliquity_mm", "pelvic_torsion_deg")
 MDC_MIN_BODIES = 10
 
 
@@ -69,6 +72,9 @@ def draw_body(rng: np.random.Generator) -> dict:
         "neck_hair_mm": float(rng.uniform(12, 25)) if girl and rng.random() < 0.5 else 0.0,
         "curve": "C" if rng.random() < 0.4 else "S",
         "thoracic_apex": float(rng.uniform(0.55, 0.7)),
+        # fat fills the dimples of a heavy body
+        "dimples_mm": float(max(0.0, rng.uniform(2.0, 6.0) * (1.2 - heavy))),
+        "pelvic_obliquity_mm": float(rng.uniform(-10, 10)),
     }
     rot = float(rng.uniform(4, 12))
     return {"subject": body, "rotation_deg": rot, "lateral_mm": 1.6 * rot, "top_mm": float(rng.uniform(-10, 200)),
@@ -84,7 +90,31 @@ def scan(cfg, rotation_deg, lateral_mm, top_mm, rng, n_points):
     lm = s["landmarks"]
     region = (z > lm["sacral_point"][2] - 150.0) & (z < lm["vertebra_prominens"][2] + top_mm)
     t = scan_surface(s["vertices"], s["triangles"], region, n_points=n_points, seed=int(rng.integers(1 << 30)))
+    s["true_profiles"] = true_profiles(cfg, s)
+    s["dimples_mm"] = cfg.subject.dimples_mm
     return s, t
+
+
+def true_profiles(cfg, s) -> dict:
+    """The true kyphotic/lordotic angles (the same definition on the true skin line over the spinous
+    processes, between the true landmarks), the true Cobb angle of the simulated spine's frontal curve, and
+    the true pelvic obliquity (between the true dimples)."""
+    p = s["posture"]
+    lm = {k: p.R.T @ (np.asarray(v) - p.t) for k, v in s["landmarks"].items() if v is not None}
+    line = (s["symmetry_line"] - p.t) @ p.R  # the patient frame: x left, y posterior, z up
+    z_sp, z_vp = lm["sacral_point"][2], lm["vertebra_prominens"][2]
+    out = {}
+    sag = sagittal_angles(line[:, 2], line[:, 1], z_sp, z_vp)
+    if sag:
+        out["kyphotic_angle_deg"], out["lordotic_angle_deg"] = sag["kyphotic_angle_deg"], sag["lordotic_angle_deg"]
+    levels = np.linspace(0, 1, 401)
+    lateral, _ = curve_profiles(levels, cfg.subject, p.rotation_deg, p.lateral_mm)
+    cobb = cobb_estimate(z_sp + levels * (z_vp - z_sp), lateral, z_sp, z_vp)
+    if cobb:
+        out["cobb_estimate_deg"] = cobb["value_deg"] * (1 if cobb["side"] == "right" else -1)
+    if "dimple_left" in lm:
+        out["pelvic_obliquity_mm"] = float(lm["dimple_right"][2] - lm["dimple_left"][2])
+    return out
 
 
 def measure(subject, torso) -> dict:
@@ -98,12 +128,15 @@ def measure(subject, torso) -> dict:
     out["facing_ok"] = bool(np.asarray(rep["frame"]["posterior"]) @ post > 0.7)
     out["facing_status"] = rep["frame"]["facing"]["status"]
     out["landmark_error"] = {k: (np.asarray(rep["landmarks"][k]["position_mm"]) - subject["landmarks"][k]).tolist()
-                             for k in LANDMARK_KEYS}
+                             for k in LANDMARK_KEYS if rep["landmarks"].get(k, {}).get("position_mm") is not None
+                             and subject["landmarks"].get(k) is not None}
     out["landmark_confidence"] = {k: rep["landmarks"][k].get("confidence") for k in LANDMARK_KEYS}
+    out["dimples_mm"] = subject["dimples_mm"]
     if "not_measurable" in rep:
         out["declined"] = rep["not_measurable"]["reason"]
     i = int(np.argmax(np.abs(subject["curve"]["rotation_deg"])))
-    out["truth"] = {"surface_rotation_deg.max": float(subject["curve"]["rotation_deg"][i])}
+    out["truth"] = {"surface_rotation_deg.max": float(subject["curve"]["rotation_deg"][i]),
+                    **subject["true_profiles"]}
     if rep.get("apex"):
         out["truth"]["lateral_deviation_mm.max"] = true_symmetry_deviation(subject, rep)[0]
     return out
@@ -148,16 +181,22 @@ def summarise(bodies, mdc) -> dict:
     out["declined_reasons"] = sorted({d.split(":")[1].split("(")[0].strip() if ":" in d else d for d in declined})
     lm = {}
     for k in LANDMARK_KEYS:
-        err = [np.linalg.norm(s["landmark_error"][k]) for s in measured if s["landmark_confidence"][k] == "high"]
+        err = [np.linalg.norm(s["landmark_error"][k]) for s in measured
+               if s["landmark_confidence"][k] == "high" and k in s["landmark_error"]]
         spread = [np.linalg.norm(np.subtract(b["scans"]["baseline"]["landmark_error"][k],
                                              b["scans"]["rescan"]["landmark_error"][k]))
                   for b in bodies if all("report" in b["scans"][n] and b["scans"][n]["landmark_confidence"][k] == "high"
-                                         for n in ("baseline", "rescan"))]
+                                         and k in b["scans"][n]["landmark_error"] for n in ("baseline", "rescan"))]
         lm[k] = {"error_mm": {"median": float(np.median(err)), "p95": float(np.percentile(err, 95)),
                               "max": float(np.max(err))} if err else None,
                  "rescan_spread_mm": {"median": float(np.median(spread)), "max": float(np.max(spread)),
                                       "within_5mm": f"{sum(x <= 5 for x in spread)}/{len(spread)}"} if spread else None}
     out["landmarks"] = lm
+    # the dimples found with confidence, by how deep the body's dimples were
+    for lo, hi in ((0.0, 1.5), (1.5, 3.5), (3.5, 10.0)):
+        sel = [s for s in measured if lo <= s["dimples_mm"] < hi]
+        found = sum(s["landmark_confidence"]["dimple_left"] == "high" for s in sel)
+        out.setdefault("dimples_found", {})[f"{lo:g}-{hi:g} mm deep"] = f"{found}/{len(sel)}"
     idx = {}
     for k in FIGURES:
         rows = {}

@@ -79,18 +79,42 @@ INDICES: dict[str, Index] = {
     "trunk_length_mm": Index(
         "Trunk length C7 – sacral point", "mm",
         "Distance from the vertebra prominens (C7) to the sacral point: grows with the child.", growth=True),
+    "kyphotic_angle_deg": Index(
+        "Kyphotic angle (surface)", "°",
+        "Angle between the back's tangents at the top of the thoracic curve and at the thoracolumbar turn, "
+        "seen from the side (rasterstereography's kyphotic angle, not a radiograph)."),
+    "lordotic_angle_deg": Index(
+        "Lordotic angle (surface)", "°",
+        "Angle between the back's tangents at the thoracolumbar turn and above the sacrum, seen from the side "
+        "(rasterstereography's lordotic angle, not a radiograph)."),
+    "cobb_estimate_deg": Index(
+        "Cobb angle, estimated from the surface", "°",
+        "An estimate of the main curve's Cobb angle from the back's shape, not a radiograph: against a "
+        "simulated spine it is off by several degrees (see the documentation).",
+        "curve convex to the patient's right", "curve convex to the patient's left"),
+    "pelvic_obliquity_mm": Index(
+        "Pelvic obliquity", "mm",
+        "Height difference between the two lumbar dimples (over the pelvis's posterior iliac spines).",
+        "pelvis higher on the patient's right", "pelvis higher on the patient's left"),
+    "pelvic_torsion_deg": Index(
+        "Pelvic torsion", "°",
+        "How differently the back's surface at the two lumbar dimples faces up or down: a twist of the pelvis.",
+        "right side of the pelvis facing more upwards", "left side of the pelvis facing more upwards"),
 }
 
 # the order of the tables (the full set) and of a headline (the largest values, one per index)
 TABLE_KEYS = ("lateral_deviation_mm.max", "lateral_deviation_mm.rms", "spine_lateral_deviation_mm.max",
               "surface_rotation_deg.max", "surface_rotation_deg.rms", "midline_rotation_deg.max", "hump_mm",
-              "hump_angle_deg", "trunk_imbalance_mm", "trunk_inclination_mm", "asymmetry_mm", "trunk_length_mm")
+              "hump_angle_deg", "trunk_imbalance_mm", "trunk_inclination_mm", "asymmetry_mm", "cobb_estimate_deg",
+              "kyphotic_angle_deg", "lordotic_angle_deg", "pelvic_obliquity_mm", "pelvic_torsion_deg",
+              "trunk_length_mm")
 HEADLINE_KEYS = ("lateral_deviation_mm.max", "spine_lateral_deviation_mm.max", "surface_rotation_deg.max",
                  "midline_rotation_deg.max", "hump_mm", "hump_angle_deg", "trunk_imbalance_mm",
                  "trunk_inclination_mm", "asymmetry_mm")
 GROWTH_KEYS = tuple(k for k, v in INDICES.items() if v.growth)
 
-LANDMARK_NAMES = {"vertebra_prominens": "vertebra prominens (C7)", "sacral_point": "sacral point"}
+LANDMARK_NAMES = {"vertebra_prominens": "vertebra prominens (C7)", "sacral_point": "sacral point",
+                  "dimple_left": "left lumbar dimple", "dimple_right": "right lumbar dimple"}
 
 # comparison regions (torso-comparison/1) and the growth figures of a comparison
 REGION_NAMES = {"back_upper": "Back, upper third", "back_middle": "Back, middle third",

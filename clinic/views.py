@@ -306,6 +306,8 @@ def _quality(rec) -> dict:
             worse(1, f"{100 * m:.0f} % of the overlap of {name} matched")
     ind = rec.indices or {}
     for name, lm in (ind.get("landmarks") or {}).items():
+        if name.startswith("dimple"):
+            continue  # the body's, not the scan's: only the pelvic figures wait for them (the page asks apart)
         conf = lm.get("confidence")
         if conf not in (None, "high", "clinician"):
             worse(1, f"the {labels.landmark(name)} was placed with {conf} confidence: check it or mark it")
@@ -493,7 +495,8 @@ def visit(request, visit_id):
 @login_required
 @require_POST
 def correct_landmarks(request, visit_id):
-    """A clinician moves the vertebra prominens or the sacral point; the indices are computed again."""
+    """A clinician moves the vertebra prominens, the sacral point or a lumbar dimple; the indices are computed
+    again."""
     from .analysis_step import analyse_reconstruction
 
     v = get_object_or_404(Visit.objects.filter(patient__clinic__in=clinics_of(request.user)), pk=visit_id)
@@ -502,7 +505,9 @@ def correct_landmarks(request, visit_id):
     if rec is None:
         raise Http404("this visit has no torso yet")
     landmarks = {}  # every landmark is checked before any is stored
-    for name in ("vertebra_prominens", "sacral_point"):
+    from analysis.indices import LANDMARKS
+
+    for name in LANDMARKS:
         raw = request.POST.get(name, "").strip()
         if raw:
             try:

@@ -31,3 +31,22 @@ def test_it_rejects_a_landmark_that_is_not_three_numbers(client, charlie, olga, 
     assert r.status_code == 400 and b"three numbers" in r.content
     client.force_login(olga)
     assert client.post(f"/visits/{visit.pk}/landmarks", {"sacral_point": "1 2 3"}).status_code == 404
+
+
+@pytest.mark.django_db
+def test_marked_dimples_make_the_pelvic_figures_measurable(client, charlie, patient_with_two_visits):  # noqa: F811
+    from clinic.models import Reconstruction
+
+    visit = patient_with_two_visits.visits.first()
+    rec = Reconstruction.objects.get(session__visit=visit)
+    sp = rec.indices["landmarks"]["sacral_point"]["position_mm"]
+    left, right = [sp[0] + 45.0, sp[1], sp[2] + 30.0], [sp[0] - 45.0, sp[1], sp[2] + 36.0]
+    client.force_login(charlie)
+    r = client.post(f"/visits/{visit.pk}/landmarks", {"dimple_left": " ".join(map(str, left)),
+                                                      "dimple_right": " ".join(map(str, right))})
+    assert r.status_code == 302
+    rec.refresh_from_db()
+    assert rec.landmarks == {"dimple_left": left, "dimple_right": right}
+    assert rec.indices["landmarks"]["dimple_left"]["source"] == "clinician"
+    assert abs(rec.indices["pelvic_obliquity_mm"]) == pytest.approx(6.0, abs=0.5)
+    assert "pelvic_obliquity_mm" not in (rec.indices.get("not_measurable") or {}).get("indices", [])

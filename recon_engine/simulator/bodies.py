@@ -40,6 +40,7 @@ class Body:
     z_sacrum: float
     z_c7: float
     shoulders: np.ndarray | None = None  # (2, 3) the left and right shoulder joints (MakeHuman only)
+    dimples: np.ndarray | None = None  # (2, 3) bottoms of the left (+X) and right lumbar dimples, on the skin
 
 
 def mesh_path() -> Path:
@@ -198,9 +199,9 @@ def shape_body(body: Body, cfg: SubjectConfig) -> Body:
     the truth (spine, landmarks behind C7 and the sacrum) follows the skin.
     Lengths in mm, world frame (the subject faces -Y, left +X).
     """
-    defaults = (1.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0)
+    defaults = (1.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0)
     build = (cfg.build_width, cfg.build_depth, cfg.belly_mm, cfg.breasts_mm, cfg.hips, cfg.arm_abduction_deg,
-             cfg.neck_hair_mm)
+             cfg.neck_hair_mm, cfg.dimples_mm, cfg.pelvic_obliquity_mm)
     if build == defaults:
         return body
     V = body.vertices.copy()
@@ -227,7 +228,65 @@ def shape_body(body: Body, cfg: SubjectConfig) -> Body:
         # prominens, as long hair does when not tied up
         back = np.clip((V[:, 1] - sy) / 30.0, 0.0, 1.0) * np.exp(-0.5 * (V[:, 0] / 45.0) ** 2)
         V[:, 1] += cfg.neck_hair_mm * back * np.clip((z - body.z_c7 + 10.0) / 30.0, 0.0, 1.0)
-    return replace(body, vertices=V)
+    on_back = np.clip((V[:, 1] - sy) / 30.0, 0.0, 1.0)
+    half = cfg.dimple_half_spacing_mm * cfg.build_width * cfg.hips
+    centres = np.array([[half, 0.0, body.z_sacrum + cfg.dimple_height_mm],
+                        [-half, 0.0, body.z_sacrum + cfg.dimple_height_mm]])
+    if cfg.pelvic_obliquity_mm:
+        tilt = np.arctan2(cfg.pelvic_obliquity_mm, 2.0 * half)
+        reach = cfg.dimple_height_mm + 10.0
+        V, centres = _tilt_pelvis(V, body, tilt, reach), _tilt_pelvis(centres, body, tilt, reach)
+    if cfg.dimples_mm:
+        # a hollow over each posterior superior iliac spine, pressed in along -Y (into the body), 2-3 cm across
+        for c in centres:
+            d2 = ((V[:, 0] - c[0]) / 11.0) ** 2 + ((V[:, 2] - c[2]) / 14.0) ** 2
+            V[:, 1] -= cfg.dimples_mm * np.exp(-0.5 * d2) * on_back
+    return replace(body, vertices=V, dimples=_onto_back(V, body.triangles, centres))
+
+
+def _tilt_pelvis(V: np.ndarray, body: Body, angle: float, whole_below_mm: float = 40.0) -> np.ndarray:
+    """The pelvis turned about the sacral point's forward axis by ``angle`` (rad; +: the right side, -X, up),
+    whole up to ``whole_below_mm`` above the sacral point (the iliac spines) and fading out over the lumbar
+    spine (to 30 % of the trunk up)."""
+    L = body.z_c7 - body.z_sacrum
+    top = body.z_sacrum + 0.3 * L
+    w = np.clip((top - V[:, 2]) / (top - body.z_sacrum - whole_below_mm), 0.0, 1.0)
+    a = angle * w
+    rel_x, rel_z = V[:, 0], V[:, 2] - body.z_sacrum
+    out = V.copy()
+    out[:, 0] = np.cos(a) * rel_x + np.sin(a) * rel_z
+    out[:, 2] = body.z_sacrum - np.sin(a) * rel_x + np.cos(a) * rel_z
+    return out
+
+
+def back_hits(V: np.ndarray, triangles: np.ndarray, xz: np.ndarray):
+    """Where rays along -Y from behind the body at ``xz`` (K, 2) mm first meet the skin: the back.
+
+    Returns ``(triangle index (K,), barycentric weights (K, 3))``; a ray that misses has weights NaN.
+    """
+    import open3d as o3d
+
+    mesh = o3d.t.geometry.TriangleMesh()
+    mesh.vertex.positions = o3d.core.Tensor(V.astype(np.float32))
+    mesh.triangle.indices = o3d.core.Tensor(triangles.astype(np.int32))
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(mesh)
+    xz = np.atleast_2d(xz)
+    start = np.column_stack([xz[:, 0], np.full(len(xz), V[:, 1].max() + 10.0), xz[:, 1]])
+    rays = np.concatenate([start, np.tile([0.0, -1.0, 0.0], (len(xz), 1))], axis=1).astype(np.float32)
+    hit = scene.cast_rays(o3d.core.Tensor(rays))
+    ok = np.isfinite(hit["t_hit"].numpy())
+    tri = np.where(ok, hit["primitive_ids"].numpy(), 0).astype(np.int64)
+    uv = hit["primitive_uvs"].numpy().astype(float)
+    w = np.column_stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]])
+    w[~ok] = np.nan
+    return tri, w
+
+
+def _onto_back(V: np.ndarray, triangles: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """The skin points straight behind ``points`` (mm world): the back at their x and z."""
+    tri, w = back_hits(V, triangles, points[:, [0, 2]])
+    return np.einsum("nk,nkd->nd", w, V[triangles[tri]])
 
 
 def _turn_arms(V: np.ndarray, body: Body, abduction_deg: float) -> np.ndarray:

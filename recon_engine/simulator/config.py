@@ -82,6 +82,13 @@ class SubjectConfig:
     hips: float = 1.0  # across scale at the pelvis, blending to 1 at the waist (a girl: 1.05-1.12)
     arm_abduction_deg: float = 0.0  # arms turned about the shoulders: + raised away from the trunk, - hanging closer
     neck_hair_mm: float = 0.0  # hair over the back of the neck down to C7 (bulk, mm; 0: none)
+    # the lumbar dimples (skin over the posterior superior iliac spines): depth of each hollow (slim 3-5 mm,
+    # heavy 0-1.5: fat fills them), half their distance apart, and their height above the sacral point
+    dimples_mm: float = 3.0
+    dimple_half_spacing_mm: float = 45.0
+    dimple_height_mm: float = 30.0
+    pelvic_obliquity_mm: float = 0.0  # the right dimple this much higher than the left: the pelvis tilted
+    # sideways about the sacral point (a leg-length difference), blended into the lumbar spine
     curve: str = "S"  # "C" (one thoracolumbar curve) or "S" (right thoracic, left lumbar)
     thoracic_apex: float = 0.62  # apex level as a fraction sacrum (0) -> C7 (1): about T8
     lumbar_apex: float = 0.22  # about L2

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .bodies import Posture, curve_profiles, load_body, pose_body
+from .bodies import Posture, back_hits, curve_profiles, load_body, pose_body
 from .config import ScenarioConfig
 
 
@@ -38,7 +38,8 @@ def posed_subject(cfg: ScenarioConfig, capture: str | None = None, posture: Post
 
     Returns ``{"vertices" (N, 3) mm world, "triangles" (M, 3), "torso_faces" (M,) bool, "spine" (K, 3),
     "posture", "landmarks": {"vertebra_prominens", "sacral_point"} (skin points behind C7 and the sacrum,
-    found as ``simulate`` finds them, mm world), "curve": {"levels", "lateral_mm", "rotation_deg"},
+    found as ``simulate`` finds them, mm world) and, on a body with dimples, "dimple_left", "dimple_right"
+    (the bottoms of the lumbar dimples, the patient's left and right), "curve": {"levels", "lateral_mm", "rotation_deg"},
     "symmetry_line": (L, 3) mm world}``. The symmetry line is the skin over the spinous processes: the
     rest body's skin point straight behind the spine at each height, carried through the posture
     (curve, hump, breathing, sway) with the skin itself.
@@ -63,6 +64,11 @@ def posed_subject(cfg: ScenarioConfig, capture: str | None = None, posture: Post
         ray = np.concatenate([p, posterior])[None].astype(np.float32)
         t = float(scene.cast_rays(o3d.core.Tensor(ray))["t_hit"].numpy()[0])
         landmarks[key] = (np.asarray(p) + t * posterior) if np.isfinite(t) else None
+    if body.dimples is not None:
+        # the same skin point of the same triangle, carried through the posture
+        tri, w = back_hits(body.vertices, body.triangles, body.dimples[:, [0, 2]])
+        pts = np.einsum("nk,nkd->nd", w, V[body.triangles[tri]])
+        landmarks["dimple_left"], landmarks["dimple_right"] = pts[0], pts[1]
     levels = np.linspace(0, 1, 21)
     lateral, rotation = curve_profiles(levels, cfg.subject, posture.rotation_deg, posture.lateral_mm)
     return {"vertices": V, "triangles": body.triangles, "torso_faces": body.torso_faces, "spine": spine,
