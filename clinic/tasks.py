@@ -75,12 +75,3 @@ def check_files() -> str:
     from . import filecheck
 
     return filecheck.check().summary()
-
-
-@shared_task
-def check_files() -> str:
-    """Scheduled (Celery beat): stored files no row references and rows whose file is missing are logged (removal
-    is left to ``manage.py check_files --remove-orphans``, run by a person)."""
-    from . import filecheck
-
-    return filecheck.check().summary()
