@@ -41,7 +41,7 @@ sys.path.insert(0, str(ROOT))
 os.environ.setdefault("DEBUG", "true")  # plain HTTP on loopback (DEBUG off wants HTTPS and a real SECRET_KEY)
 
 from tests.outage import OwnRedis  # noqa: E402
-from tests.pg_server import _manage, _sql  # noqa: E402
+from tests.pg_server import run_manage, run_sql  # noqa: E402
 from tests.service_flow import free_port, stop_processes, wait_for_port  # noqa: E402
 
 WIDTH, HEIGHT = 3000, 2000
@@ -117,13 +117,13 @@ def main():
     broker = OwnRedis(run / "redis")
     broker.start()
     dbname = f"torsoscan_load_{os.getpid()}"
-    _sql(f'CREATE DATABASE "{dbname}"')
+    run_sql(f'CREATE DATABASE "{dbname}"')
     env = {**os.environ, "DJANGO_SETTINGS_MODULE": "clinic.settings", "TORSOSCAN_VAR": str(run / "var"),
            "DATABASE_URL": f"postgres://postgres@127.0.0.1:5432/{dbname}", "CELERY_BROKER_URL": broker.url,
            "CELERY_QUEUE": f"load-{os.getpid()}"}
     server = None
     try:
-        _manage(env, "migrate", "--noinput")
+        run_manage(env, "migrate", "--noinput")
         keys = {f"LOAD-{i:02d}": "tsk_load-" + uuid.uuid4().hex for i in range(args.rigs)}
         seed = ("import json, sys; from django.contrib.auth.models import User;"
                 "from clinic.api import sync_cameras; from clinic.models import *; from clinic.models import _hash_key;"
@@ -135,7 +135,7 @@ def main():
                 "key_hash=_hash_key(keys[r.serial])) for r in [Rig.objects.create(clinic=c, serial=s, description=rigs[s]) "
                 "for s in keys]];"
                 "print(v.pk)")
-        visit = int(_manage(env, "shell", "-c", seed).split()[-1])
+        visit = int(run_manage(env, "shell", "-c", seed).split()[-1])
         port = free_port()
         server = subprocess.Popen(
             [sys.executable, "-m", "gunicorn", "clinic.wsgi:application", "--bind", f"127.0.0.1:{port}",
@@ -214,7 +214,7 @@ def main():
 
         total = sum(len(d) for _, images in captures.values() for d in images.values())
         # every image stored once, with its sha256; nothing else in the store
-        rows = _sql("SELECT s.idempotency_key, i.camera, i.file FROM clinic_captureimage i "
+        rows = run_sql("SELECT s.idempotency_key, i.camera, i.file FROM clinic_captureimage i "
                     "JOIN clinic_capturesession s ON s.id = i.session_id WHERE s.idempotency_key LIKE 'load-%'",
                     dbname)
         media = run / "var" / "media"
@@ -238,7 +238,7 @@ def main():
         if server is not None:
             stop_processes([server], timeout=30)
         broker.stop()
-        _sql(f'DROP DATABASE IF EXISTS "{dbname}" WITH (FORCE)')
+        run_sql(f'DROP DATABASE IF EXISTS "{dbname}" WITH (FORCE)')
 
 
 if __name__ == "__main__":

@@ -346,7 +346,7 @@ def _pictures(kind, obj) -> list:
 WORKLIST_LIMIT = 50  # overdue patients listed on the home page, the longest overdue first
 
 
-def _months_before(day, months):
+def months_before(day, months):
     """The same day of the month ``months`` earlier (the month's last day where it is shorter)."""
     import calendar
 
@@ -366,13 +366,13 @@ def _worklist(user, today) -> dict:
     visits_today = (Visit.objects.filter(patient__in=_patients(user), date=today)
                     .select_related("patient", "patient__clinic").order_by("patient__name", "id"))
     latest = Visit.objects.filter(patient=OuterRef("pk")).order_by("-date", "-id")
-    cutoff = _months_before(today, months)
+    cutoff = months_before(today, months)
     overdue = []
     for row in (_patients(user).annotate(last_visit=Subquery(latest.values("date")[:1]),
                                          due=Subquery(latest.values("next_visit_due")[:1]))
                 .filter(Q(due__lt=today) | Q(due__isnull=True, last_visit__lt=cutoff))
                 .values("pk", "name", "identifier", "last_visit", "due")):
-        row["due_since"] = row["due"] or _months_before(row["last_visit"], -months)
+        row["due_since"] = row["due"] or months_before(row["last_visit"], -months)
         row["late"] = _span(row["due_since"], today)
         overdue.append(row)
     overdue.sort(key=lambda r: (r["due_since"], r["name"]))

@@ -35,14 +35,14 @@ SEED = ("from django.contrib.auth.models import User;"
         f"RigKey.objects.create(rig=rig, prefix='{KEY[:10]}', key_hash=_hash_key('{KEY}'))")
 
 
-def _sql(query, dbname="postgres"):
+def run_sql(query, dbname="postgres"):
     import psycopg
 
     with psycopg.connect(dbname=dbname, autocommit=True, **PG) as conn:
         return conn.execute(query).fetchall() if query.lstrip().upper().startswith("SELECT") else conn.execute(query)
 
 
-def _manage(env, *args):
+def run_manage(env, *args):
     r = subprocess.run([sys.executable, "manage.py", *args], cwd=ROOT, env=env, capture_output=True, text=True,
                        timeout=300)
     assert r.returncode == 0, f"manage.py {' '.join(args)} failed: {r.stderr[-3000:]}"
@@ -56,18 +56,18 @@ def template_database(env) -> str:
     for p in sorted((ROOT / "clinic" / "migrations").glob("*.py")):
         digest.update(p.read_bytes())
     name = f"torsoscan_template_{digest.hexdigest()[:12]}"
-    if _sql(f"SELECT 1 FROM pg_database WHERE datname = '{name}'"):
+    if run_sql(f"SELECT 1 FROM pg_database WHERE datname = '{name}'"):
         return name
     building = f"{name}_{os.getpid()}"
-    _sql(f'DROP DATABASE IF EXISTS "{building}"')
-    _sql(f'CREATE DATABASE "{building}"')
+    run_sql(f'DROP DATABASE IF EXISTS "{building}"')
+    run_sql(f'CREATE DATABASE "{building}"')
     env = {**env, "DATABASE_URL": f"postgres://postgres@127.0.0.1:5432/{building}"}
-    _manage(env, "migrate", "--noinput")
-    _manage(env, "shell", "-c", SEED)
+    run_manage(env, "migrate", "--noinput")
+    run_manage(env, "shell", "-c", SEED)
     try:
-        _sql(f'ALTER DATABASE "{building}" RENAME TO "{name}"')
+        run_sql(f'ALTER DATABASE "{building}" RENAME TO "{name}"')
     except Exception:  # another test made it meanwhile
-        _sql(f'DROP DATABASE IF EXISTS "{building}" WITH (FORCE)')
+        run_sql(f'DROP DATABASE IF EXISTS "{building}" WITH (FORCE)')
     return name
 
 
@@ -81,7 +81,7 @@ class Server:
                     "CELERY_BROKER_URL": "", "STORAGE_BACKEND": "tests.fault_storage.FaultStorage",
                     "DATABASE_URL": f"postgres://postgres@127.0.0.1:5432/{self.dbname}", **env}
         template = template_database(self.env)
-        _sql(f'CREATE DATABASE "{self.dbname}" TEMPLATE "{template}"')
+        run_sql(f'CREATE DATABASE "{self.dbname}" TEMPLATE "{template}"')
         self.key = KEY
         (self.visit_id,), = self.sql("SELECT id FROM clinic_visit")
         self.port = free_port()
@@ -102,11 +102,11 @@ class Server:
         return sorted(str(p.relative_to(media)) for p in media.rglob("*") if p.is_file()) if media.exists() else []
 
     def sql(self, query):
-        return _sql(query, self.dbname)
+        return run_sql(query, self.dbname)
 
     def terminate_connections(self) -> int:
         """Every server connection to the test's database killed, as a database restart does."""
-        rows = _sql("SELECT pg_terminate_backend(pid) FROM pg_stat_activity "
+        rows = run_sql("SELECT pg_terminate_backend(pid) FROM pg_stat_activity "
                     f"WHERE datname = '{self.dbname}' AND pid <> pg_backend_pid()")
         return len(rows)
 
@@ -115,7 +115,7 @@ class Server:
 
     def close(self):
         stop_processes([self.proc], timeout=20)
-        _sql(f'DROP DATABASE IF EXISTS "{self.dbname}" WITH (FORCE)')
+        run_sql(f'DROP DATABASE IF EXISTS "{self.dbname}" WITH (FORCE)')
 
 
 @contextmanager

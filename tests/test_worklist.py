@@ -7,7 +7,7 @@ import pytest
 from django.utils import timezone
 
 from clinic.models import Patient, Visit
-from clinic.views import _months_before
+from clinic.views import months_before
 
 
 def _patient(clinic, ident, *visits):
@@ -58,9 +58,9 @@ def test_the_follow_up_interval_is_a_setting(client, charlie, clinic, settings):
 
 
 def test_months_are_counted_on_the_calendar():
-    assert _months_before(date(2026, 8, 31), 6) == date(2026, 2, 28)
-    assert _months_before(date(2026, 1, 15), 1) == date(2025, 12, 15)
-    assert _months_before(date(2026, 1, 15), -6) == date(2026, 7, 15)
+    assert months_before(date(2026, 8, 31), 6) == date(2026, 2, 28)
+    assert months_before(date(2026, 1, 15), 1) == date(2025, 12, 15)
+    assert months_before(date(2026, 1, 15), -6) == date(2026, 7, 15)
 
 
 @pytest.mark.django_db
