@@ -12,6 +12,7 @@ retried, a bounded number of times. The next step is sent with
 from celery import shared_task
 
 from . import pipeline
+from .celery import task_thread_limits
 
 RETRY = dict(autoretry_for=pipeline.TRANSIENT, retry_backoff=5, retry_backoff_max=120, retry_jitter=True,
              max_retries=3)
@@ -38,7 +39,9 @@ def start_reconstruction(job_id: int) -> str:
 
 @shared_task(**RETRY)
 def reconstruct_arm(job_id: int, arm: str) -> str:
-    outcome = pipeline.reconstruct_arm(job_id, arm)
+    # several arm tasks run side by side in a worker: each keeps to its share of the cores (see clinic.celery)
+    with task_thread_limits():
+        outcome = pipeline.reconstruct_arm(job_id, arm)
     if outcome == "arms done":
         pipeline.send(register, job_id)
     return outcome

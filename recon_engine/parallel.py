@@ -5,9 +5,18 @@ from __future__ import annotations
 import os
 
 
+THREADS_ENV = "TORSOSCAN_THREADS"
+
+
 def cores(requested: int = 0) -> int:
-    """``requested`` when positive, else one per core of this machine."""
-    return requested if requested > 0 else (os.cpu_count() or 1)
+    """``requested`` when positive, else the threads this process may use: ``TORSOSCAN_THREADS`` where set (a
+    service that runs several engine jobs side by side shares the cores out so), else one per core."""
+    if requested > 0:
+        return requested
+    budget = os.environ.get(THREADS_ENV, "").strip()
+    if budget.isdigit() and int(budget) > 0:
+        return int(budget)
+    return os.cpu_count() or 1
 
 
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters (malloc.h)

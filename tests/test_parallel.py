@@ -1,5 +1,6 @@
 """Process-level settings of the engine's stages."""
 
+import os
 import platform
 
 import numpy as np
@@ -8,9 +9,19 @@ import pytest
 from recon_engine.parallel import cores, reuse_freed_images
 
 
-def test_cores_is_the_request_or_one_per_core():
+def test_cores_is_the_request_or_one_per_core(monkeypatch):
+    monkeypatch.delenv("TORSOSCAN_THREADS", raising=False)
     assert cores(3) == 3
     assert cores(0) >= 1
+
+
+def test_a_thread_budget_in_the_environment_caps_the_default(monkeypatch):
+    # a clinic worker running two arm tasks side by side on 2 cores gives each task 1 thread
+    monkeypatch.setenv("TORSOSCAN_THREADS", "1")
+    assert cores(0) == 1
+    assert cores(3) == 3  # an explicit request is the caller's
+    monkeypatch.setenv("TORSOSCAN_THREADS", "zero")  # not a count: ignored
+    assert cores(0) == (os.cpu_count() or 1)
 
 
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's allocator only")
