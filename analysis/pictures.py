@@ -222,10 +222,8 @@ def trend_picture(visits, out_png, mdc: dict | None = None, figures=TREND_FIGURE
     dict. ``mdc``: figure -> mm or ``{"mdc": mm}`` (keys as in ``figures``, e.g.
     ``"hump_mm"``, ``"surface_rotation_deg.max"``).
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # a Figure of its own (Agg canvas), not pyplot: a library call must not switch the process's backend
+    from matplotlib.figure import Figure
 
     from .repeatability import flatten
 
@@ -236,7 +234,8 @@ def trend_picture(visits, out_png, mdc: dict | None = None, figures=TREND_FIGURE
     n = len(figures)
     cols = 2
     rows = (n + 1) // 2
-    fig, axes = plt.subplots(rows, cols, figsize=size_in, sharex=True, squeeze=False)
+    fig = Figure(figsize=size_in)
+    axes = fig.subplots(rows, cols, sharex=True, squeeze=False)
     for k, (key, title) in enumerate(figures):
         ax = axes[k // cols][k % cols]
         ys = [f.get(key, np.nan) for f in flat]
@@ -261,7 +260,6 @@ def trend_picture(visits, out_png, mdc: dict | None = None, figures=TREND_FIGURE
     fig.tight_layout()
     Path(out_png).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out_png, dpi=100)
-    plt.close(fig)
     return str(out_png)
 
 

@@ -703,16 +703,14 @@ def revoke_rig_key(request, serial, prefix):
 @login_required
 def rig_stability_chart(request, serial):
     """Every measure of every camera over the rig's calibrations against its threshold (SVG, drawn on request)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # not pyplot: its global state is not safe across request threads
 
     r = get_object_or_404(Rig.objects.filter(clinic__in=clinics_of(request.user)), serial=serial)
     cams = [c for c in r.cameras.all() if c.stability_checks.exists()]
     if not cams:
         raise Http404("no stability check yet")
-    fig, axes = plt.subplots(1, 4, figsize=(15, 3.6), sharex=True)
+    fig = Figure(figsize=(15, 3.6))
+    axes = fig.subplots(1, 4, sharex=True)
     measures = (("zrot_px", "ZROT"), ("rot_px", "ROT"), ("spr_px", "SPR"), ("arm_px", "ARM"))
     for ax, (field, title) in zip(axes, measures):
         for cam in cams:
@@ -730,7 +728,6 @@ def rig_stability_chart(request, serial):
     fig.tight_layout()
     buf = io.StringIO()
     fig.savefig(buf, format="svg")
-    plt.close(fig)
     return HttpResponse(buf.getvalue(), content_type="image/svg+xml")
 
 
