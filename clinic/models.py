@@ -338,7 +338,11 @@ class Reconstruction(models.Model):
     points = models.PositiveIntegerField()
     indices = models.JSONField(null=True, blank=True, help_text="torso-indices/1 of this torso")
     landmarks = models.JSONField(null=True, blank=True,
-                                 help_text="A clinician's corrections: vertebra_prominens, sacral_point (mm, rig frame)")
+                                 help_text="A clinician's corrections: vertebra_prominens, sacral_point, dimple_left, "
+                                           "dimple_right (mm, rig frame)")
+    landmark_history = models.JSONField(
+        default=list, blank=True,
+        help_text="The corrections replaced, newest last: {landmarks, by, at}; undo restores the last")
     pictures = models.JSONField(default=dict, blank=True, help_text="Picture name -> storage name")
     created = models.DateTimeField(default=timezone.now)
 

@@ -626,3 +626,20 @@ def redispatch_stalled(older_than=None, now=None) -> list:
             send(tasks.register, job.pk)
             sent.append((tasks.register.name, job.pk))
     return sent
+
+
+def forget_comparisons_of(rec: Reconstruction) -> list:
+    """The comparisons resting on ``rec`` (its landmarks changed), removed with their jobs; their files go once
+    the transaction commits. Returns the pairs ``(earlier, later)`` to compare again
+    (:func:`request_comparison`)."""
+    from .models import Comparison
+
+    pairs, files = [], []
+    for c in Comparison.objects.filter(Q(earlier=rec) | Q(later=rec)).select_related("earlier", "later"):
+        pairs.append((c.earlier, c.later))
+        files += [c.deformation.name] if c.deformation else []
+        files += list((c.pictures or {}).values())
+        c.delete()
+    Job.objects.filter(kind=Job.COMPARISON).filter(Q(earlier=rec) | Q(later=rec)).delete()
+    transaction.on_commit(lambda: [default_storage.delete(f) for f in files if f])
+    return pairs

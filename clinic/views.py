@@ -495,10 +495,8 @@ def visit(request, visit_id):
 @login_required
 @require_POST
 def correct_landmarks(request, visit_id):
-    """A clinician moves the vertebra prominens, the sacral point or a lumbar dimple; the indices are computed
-    again."""
-    from .analysis_step import analyse_reconstruction
-
+    """A clinician moves the vertebra prominens, the sacral point or a lumbar dimple; the indices, pictures and
+    comparisons resting on them are computed again; who changed what is kept for undo."""
     v = get_object_or_404(Visit.objects.filter(patient__clinic__in=clinics_of(request.user)), pk=visit_id)
     _require_role(request, v.patient.clinic_id, CORRECT_LANDMARKS)
     rec = _best(v)
@@ -520,15 +518,49 @@ def correct_landmarks(request, visit_id):
                     "message": f"{name.replace('_', ' ')}: give three numbers x y z in mm (each within "
                                f"±{LANDMARK_LIMIT_MM:g} mm), got {raw[:80]!r}"}, status=400)
             landmarks[name] = xyz
+    history = [*(rec.landmark_history or []), {"landmarks": rec.landmarks, "by": request.user.get_username(),
+                                                 "at": timezone.now().isoformat(timespec="seconds")}]
+    return _apply_landmarks(request, v, rec, landmarks or None, history[-LANDMARK_HISTORY:])
+
+
+LANDMARK_HISTORY = 20  # corrections a torso keeps for undo
+
+
+@login_required
+@require_POST
+def undo_landmarks(request, visit_id):
+    """The last landmark correction undone: the landmarks before it come back, and everything is computed again."""
+    v = get_object_or_404(Visit.objects.filter(patient__clinic__in=clinics_of(request.user)), pk=visit_id)
+    _require_role(request, v.patient.clinic_id, CORRECT_LANDMARKS)
+    rec = _best(v)
+    if rec is None or not rec.landmark_history:
+        raise Http404("no landmark correction to undo")
+    history = list(rec.landmark_history)
+    last = history.pop()
+    return _apply_landmarks(request, v, rec, last.get("landmarks"), history)
+
+
+def _apply_landmarks(request, v, rec, landmarks, history):
+    """Store the landmarks, compute the torso's indices and pictures again, and the comparisons resting on it
+    (as jobs: each page shows its progress); all stored or none."""
+    from .analysis_step import analyse_reconstruction
+
     try:
         with transaction.atomic():  # the correction and the indices computed from it, or neither
-            rec.landmarks = landmarks or None
-            rec.save(update_fields=["landmarks"])
+            rec.landmarks = landmarks
+            rec.landmark_history = history
+            rec.save(update_fields=["landmarks", "landmark_history"])
             analyse_reconstruction(rec)
+            pairs = pipeline.forget_comparisons_of(rec)
     except Exception:
         log.exception("visit %s: the indices could not be computed from corrected landmarks %s", v.pk, landmarks)
         return _refused(request, "The indices could not be computed from these landmarks; the correction was "
                                  "not saved.", 500, back=reverse("visit", args=[v.pk]))
+    for earlier, later in pairs:  # committed: a worker may take them (in the embedded default they run here)
+        pipeline.request_comparison(earlier, later)
+    if pairs:
+        messages.info(request, f"The indices were computed again; {len(pairs)} comparison(s) with this scan are "
+                               "being computed again.")
     return redirect("visit", visit_id=v.pk)
 
 
