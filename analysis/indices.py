@@ -404,8 +404,9 @@ SIDED = ("lateral_deviation_mm", "surface_rotation_deg", "spine_lateral_deviatio
 # figures read at the lumbar dimples
 PELVIC = ("pelvic_obliquity_mm", "pelvic_obliquity_deg", "pelvic_torsion_deg")
 
-COBB_NOTE = ("an estimate of the major curve's Cobb angle from the back's surface, not a radiograph; its error "
-             "against a simulated spine is given in docs/analysis.md")
+COBB_NOTE = ("an estimate of the major curve's Cobb angle from the back's surface, not a radiograph; against the "
+             "simulator's true spines it was 19 deg off on average and up to 84 deg (docs/analysis.md): not for "
+             "clinical use, and not shown on the clinic's pages")
 
 
 # figures that rest on VP and SP (the sections between them, the line joining them, the length): a landmark

@@ -87,11 +87,6 @@ INDICES: dict[str, Index] = {
         "Lordotic angle (surface)", "°",
         "Angle between the back's tangents at the thoracolumbar turn and above the sacrum, seen from the side "
         "(rasterstereography's lordotic angle, not a radiograph)."),
-    "cobb_estimate_deg": Index(
-        "Cobb angle, estimated from the surface", "°",
-        "An estimate of the main curve's Cobb angle from the back's shape, not a radiograph: against a "
-        "simulated spine it is off by several degrees (see the documentation).",
-        "curve convex to the patient's right", "curve convex to the patient's left"),
     "pelvic_obliquity_mm": Index(
         "Pelvic obliquity", "mm",
         "Height difference between the two lumbar dimples (over the pelvis's posterior iliac spines).",
@@ -105,7 +100,7 @@ INDICES: dict[str, Index] = {
 # the order of the tables (the full set) and of a headline (the largest values, one per index)
 TABLE_KEYS = ("lateral_deviation_mm.max", "lateral_deviation_mm.rms", "spine_lateral_deviation_mm.max",
               "surface_rotation_deg.max", "surface_rotation_deg.rms", "midline_rotation_deg.max", "hump_mm",
-              "hump_angle_deg", "trunk_imbalance_mm", "trunk_inclination_mm", "asymmetry_mm", "cobb_estimate_deg",
+              "hump_angle_deg", "trunk_imbalance_mm", "trunk_inclination_mm", "asymmetry_mm",
               "kyphotic_angle_deg", "lordotic_angle_deg", "pelvic_obliquity_mm", "pelvic_torsion_deg",
               "trunk_length_mm")
 HEADLINE_KEYS = ("lateral_deviation_mm.max", "spine_lateral_deviation_mm.max", "surface_rotation_deg.max",
