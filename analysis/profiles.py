@@ -22,19 +22,23 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
 
-def _resampled(z: np.ndarray, v: np.ndarray, lo: float, hi: float, step_mm: float, smooth_mm: float):
-    """``v(z)`` on a regular grid over [lo, hi], gaps filled linearly, Gaussian-smoothed (sigma mm)."""
+def _trunk_profile(z: np.ndarray, v: np.ndarray, lo: float, hi: float, step_mm: float, smooth_mm: float):
+    """``(zg, v(zg), u)``: ``v(z)`` on a regular grid over the trunk [lo, hi] (SP to VP), gaps filled linearly,
+    Gaussian-smoothed (sigma mm), and each grid height as a fraction ``u`` of the trunk; None for a trunk
+    under 100 mm or a profile that does not span it."""
+    if not hi - lo > 100:
+        return None
     z, v = np.asarray(z, float), np.asarray(v, float)
     ok = np.isfinite(z) & np.isfinite(v)
     if ok.sum() < 5:
-        return None, None
+        return None
     order = np.argsort(z[ok])
     zo, vo = z[ok][order], v[ok][order]
     zg = np.arange(lo, hi + 1e-9, step_mm)
     if len(zg) < 8 or zo[0] > lo + 0.15 * (hi - lo) or zo[-1] < hi - 0.15 * (hi - lo):
-        return None, None  # the profile does not span the trunk: no angle can be read
+        return None  # the profile does not span the trunk: no angle can be read
     vg = np.interp(zg, zo, vo)
-    return zg, gaussian_filter1d(vg, smooth_mm / step_mm, mode="nearest")
+    return zg, gaussian_filter1d(vg, smooth_mm / step_mm, mode="nearest"), (zg - lo) / (hi - lo)
 
 
 def sagittal_angles(z: np.ndarray, depth: np.ndarray, z_sp: float, z_vp: float, step_mm: float = 4.0,
@@ -46,13 +50,10 @@ def sagittal_angles(z: np.ndarray, depth: np.ndarray, z_sp: float, z_vp: float, 
     Returns ``{"kyphotic_angle_deg", "lordotic_angle_deg", "levels": {name: fraction SP 0 -> VP 1}}`` or
     None when the profile does not span the trunk.
     """
-    L = z_vp - z_sp
-    if not L > 100:
+    profile = _trunk_profile(z, depth, z_sp, z_vp, step_mm, smooth_mm)
+    if profile is None:
         return None
-    zg, d = _resampled(z, depth, z_sp, z_vp, step_mm, smooth_mm)
-    if zg is None:
-        return None
-    u = (zg - z_sp) / L
+    zg, d, u = profile
     slope = np.gradient(d, zg)
     inner = (u >= margin) & (u <= 1 - margin)
     upper = inner & (u >= 0.45)
@@ -88,13 +89,10 @@ def cobb_estimate(z: np.ndarray, lateral: np.ndarray, z_sp: float, z_vp: float, 
     or an S. Returns ``{"value_deg" (>= 0), "side" ("right"/"left": the curve's convex side),
     "apex_level", "upper_level", "lower_level" (fractions SP 0 -> VP 1)}`` or None.
     """
-    L = z_vp - z_sp
-    if not L > 100:
+    profile = _trunk_profile(z, lateral, z_sp, z_vp, step_mm, smooth_mm)
+    if profile is None:
         return None
-    zg, x = _resampled(z, lateral, z_sp, z_vp, step_mm, smooth_mm)
-    if zg is None:
-        return None
-    u = (zg - z_sp) / L
+    zg, x, u = profile
     theta = np.degrees(np.arctan(np.gradient(x, zg)))
     k_hi, k_lo = int(np.argmax(theta)), int(np.argmin(theta))
     a, b = sorted((k_hi, k_lo))

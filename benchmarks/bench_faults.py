@@ -39,7 +39,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tests.outage import Clinic, OwnRedis  # noqa: E402
+from tests.outage import Clinic, OwnRedis, clinic_with_own_broker  # noqa: E402
 from tests.service_flow import calibrate_set, register_rig  # noqa: E402
 from tests.test_service_flow_postgres import run_manage  # noqa: E402
 
@@ -227,13 +227,9 @@ def main():
     scenario = args.scenario or simulate_tiny(args.work / "scenario")
     print(f"scenario {scenario} ({time.time() - t_sim:.0f} s)", flush=True)
     run = Path(tempfile.mkdtemp(prefix="run-", dir=args.work))
-    broker = OwnRedis(run / "redis")
-    broker.start()
-    clinic = None
     results = []
-    try:
-        clinic = Clinic(run, broker, JOB_LEASE_SECONDS=str(LEASE), JOB_SWEEP_SECONDS=str(SWEEP),
-                        JOB_REDISPATCH_SECONDS=str(REDISPATCH))
+    with clinic_with_own_broker(run, JOB_LEASE_SECONDS=str(LEASE), JOB_SWEEP_SECONDS=str(SWEEP),
+                                JOB_REDISPATCH_SECONDS=str(REDISPATCH)) as (clinic, broker):
         prefork = clinic.start_worker("-c", "2")
         clinic.start_beat()
         bench = Bench(clinic, broker, scenario, args.timeout)
@@ -248,14 +244,6 @@ def main():
                 out = getattr(bench, step)()
             results.append(out)
             print(json.dumps(out), flush=True)
-    except BaseException:
-        if clinic is not None:
-            clinic.dump_logs()
-        raise
-    finally:
-        if clinic is not None:
-            clinic.close()
-        broker.stop()
     print(f"\n{'scenario':42} completed lost stuck orphaned missing  seconds")
     for r in results:
         print(f"{r['scenario']:42} {r['completed']:9} {r['lost']:4} {r['stuck']:5} {r['orphaned']:8} "

@@ -430,27 +430,6 @@ def _verdict_cell(growth, exceeds):
     return ("no verdict yet", MUTED, False)
 
 
-def comparison_index_rows(comp, mdc) -> list[dict]:
-    """Every index's change between the two scans, as the comparison page lists them (views.comparison builds the
-    same rows inline)."""
-    from analysis.repeatability import index_changes
-
-    facing = comp.report.get("facing") or {}
-    changes = index_changes(comp.earlier.indices or {}, comp.later.indices or {}, mdc,
-                            sides_agree=facing.get("consistent", True))
-    rows = []
-    for key in labels.TABLE_KEYS:
-        c = changes.get(key)
-        if c is None:
-            continue
-        ix = labels.index(key)
-        rows.append({"label": ix.label, "unit": ix.unit, "growth": ix.growth,
-                     "earlier": labels.size_words(key, c["earlier"]), "later": labels.size_words(key, c["later"]),
-                     "change": labels.change_words(key, c["earlier"], c["later"]), "mdc": c["mdc"],
-                     "exceeds_mdc": c["exceeds_mdc"]})
-    return rows
-
-
 def _label(r) -> str:
     return r["label"] + (f" ({r['unit']})" if r["unit"] else "")
 
@@ -500,7 +479,7 @@ def comparison_sheets(request, comp) -> Sheets:
                           "that did not change.")
 
     sheets.heading("Indices")
-    rows = comparison_index_rows(comp, mdc)
+    rows = views.comparison_index_rows(comp, mdc)
     sheets.table([("Index", 0.30, "left"), (_date(e_date), 0.18, "left"), (_date(l_date), 0.18, "left"),
                   ("Change", 0.10, "right"), ("Scanner noise (MDC)", 0.10, "right"), ("Verdict", 0.14, "left")],
                  [[(_label(r), INK, True), r["earlier"], r["later"], r["change"], _mdc_words(r["mdc"]),

@@ -635,27 +635,34 @@ def _job_error_words(job) -> str:
     return first.removeprefix("comparison: ") or "the comparison could not be computed"
 
 
-def _comparison_page(request, p, earlier, later, comp, scans):
+def comparison_index_rows(comp, mdc) -> list[dict]:
+    """Every index's change between the comparison's two scans, in the clinic's words, table order."""
     from analysis.repeatability import index_changes
 
+    facing = comp.report.get("facing") or {}
+    changes = index_changes(comp.earlier.indices or {}, comp.later.indices or {}, mdc,
+                            sides_agree=facing.get("consistent", True))
+    rows = []
+    for key in labels.TABLE_KEYS:
+        c = changes.get(key)
+        if c is None:
+            continue
+        ix = labels.index(key)
+        rows.append({"label": ix.label, "unit": ix.unit, "meaning": ix.meaning, "growth": ix.growth,
+                     "earlier": labels.size_words(key, c["earlier"]), "later": labels.size_words(key, c["later"]),
+                     "change": labels.change_words(key, c["earlier"], c["later"]), "mdc": c["mdc"],
+                     "exceeds_mdc": c["exceeds_mdc"]})
+    return rows
+
+
+def _comparison_page(request, p, earlier, later, comp, scans):
     mdc = _mdc(p.clinic)
     noise = _noise(p.clinic)
     facing = comp.report.get("facing") or {}
     repeat = earlier.session.visit_id == later.session.visit_id
     verdict = _verdict(p.clinic, earlier, later, "Same-day re-scan" if repeat else "Between these scans", mdc,
                        noise, sides_agree=facing.get("consistent", True), growth=comp.report.get("growth"))
-    changes = index_changes(earlier.indices or {}, later.indices or {}, mdc,
-                            sides_agree=facing.get("consistent", True))
-    index_rows = []
-    for key in labels.TABLE_KEYS:
-        c = changes.get(key)
-        if c is None:
-            continue
-        ix = labels.index(key)
-        index_rows.append({"label": ix.label, "unit": ix.unit, "meaning": ix.meaning, "growth": ix.growth,
-                           "earlier": labels.size_words(key, c["earlier"]), "later": labels.size_words(key, c["later"]),
-                           "change": labels.change_words(key, c["earlier"], c["later"]), "mdc": c["mdc"],
-                           "exceeds_mdc": c["exceeds_mdc"]})
+    index_rows = comparison_index_rows(comp, mdc)
     regions = []
     for name, stats in (comp.report.get("regions") or {}).items():
         m = (mdc.get(f"regions.{name}.mean") or {}).get("mdc")
