@@ -4,12 +4,15 @@ Playwright (Python) drives the machine's Chromium (Debian's ``chromium``
 package; Playwright cannot download its own browser here).
 """
 
+import functools
 import os
 import shutil
 
 import numpy as np
 import pytest
 from django.core.files.base import ContentFile
+
+from tests.analysis_cache import reuse_analyses
 
 CHROMIUM = os.environ.get("CHROMIUM", shutil.which("chromium") or "/usr/bin/chromium")
 
@@ -22,7 +25,9 @@ def chromium_or_skip():
         pytest.skip(message)
 
 
+@functools.lru_cache(maxsize=None)
 def torso_ply(rotation_deg, seed):
+    """The PLY bytes of a synthetic back (bytes: the cached value cannot be changed by a caller)."""
     import tempfile
     from pathlib import Path
 
@@ -38,10 +43,11 @@ def torso_ply(rotation_deg, seed):
 
 
 @pytest.fixture
-def patient_with_two_visits(clinic, charlie):
+def patient_with_two_visits(clinic, charlie, monkeypatch):
     from clinic.analysis_step import analyse_reconstruction
     from clinic.models import CaptureSession, Job, Patient, Reconstruction, Rig, Visit
 
+    reuse_analyses(monkeypatch)
     rig = Rig.objects.create(clinic=clinic, serial="RIG-B", description={})
     patient = Patient.objects.create(clinic=clinic, identifier="P-77", name="Robin Browser")
     for k, (date, rotation) in enumerate((("2026-07-01", 5.0), ("2026-11-01", 10.0))):
