@@ -246,7 +246,7 @@ def trend_picture(visits, out_png, mdc: dict | None = None, figures=TREND_FIGURE
             ax.axhspan(ys[0] - m, ys[0] + m, color="#9ecae1", alpha=0.4, label="MDC about the first visit")
             for x, y in zip(xs[1:], ys[1:]):
                 if np.isfinite(y) and abs(y - ys[0]) > m:
-                    ax.plot([x], [y], "o", color="#c0392b")
+                    ax.plot([x], [y], "^", color="#c0392b", markersize=11, zorder=3)  # a shape as well as a colour
         ax.set_title(title, fontsize=9)
         ax.grid(alpha=0.3)
         ax.tick_params(labelsize=8)
@@ -256,7 +256,7 @@ def trend_picture(visits, out_png, mdc: dict | None = None, figures=TREND_FIGURE
         for ax in axes[-1]:
             ax.set_xticks(xs)
             ax.set_xticklabels([str(lab) for lab in labels], rotation=20, fontsize=8)
-    fig.suptitle("surface indices over the visits (red: change beyond the MDC)", fontsize=11)
+    fig.suptitle("surface indices over the visits (red \u25b2: change beyond the MDC)", fontsize=11)
     fig.tight_layout()
     Path(out_png).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out_png, dpi=100)

@@ -556,7 +556,7 @@ def _conventions_and_trend(sheets: Sheets, p, until):
         sheets.heading("Trend over the visits")
         sheets.images([trend], max_h=330, min_h=TREND_MIN_H,
                       caption="Every index over the patient's visits; the shaded band is the scanner's noise (MDC) "
-                              "about the first visit, red points lie beyond it.")
+                              "about the first visit, red triangles lie beyond it.")
 
 
 def comparison_pdf(request, comp) -> bytes:
