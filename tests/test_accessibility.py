@@ -5,8 +5,8 @@ Chromium, driven by Playwright as in tests/test_browser_comparison.py, at a desk
 (390 px). A violation of impact "serious" or "critical" fails the test; the message lists each with its rule id,
 impact, page, width and the offending elements. "moderate" and "minor" ones are printed (pytest -s shows them).
 
-What axe cannot judge alone is checked by reading in tests/test_accessibility.py's second test: a skip link, a
-``scope`` on every table header, alt text on every picture, flags carried by a symbol or words as well as colour.
+What axe cannot judge alone the other tests here check by reading the templates: a skip link, a ``scope`` on
+every table header, alt text on every picture, flags carried by a symbol or words as well as colour.
 """
 
 import re
@@ -53,7 +53,8 @@ def _check(page, name, found):
 
 
 @pytest.mark.django_db(transaction=True)
-def test_no_page_has_a_serious_accessibility_violation(live_server, patient_with_two_visits, ada, settings):  # noqa: F811
+def test_no_page_has_a_serious_accessibility_violation(live_server, patient_with_two_visits,  # noqa: F811
+                                                        ada, settings):
     chromium_or_skip()
     from playwright.sync_api import sync_playwright
 
