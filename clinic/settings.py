@@ -118,6 +118,7 @@ MIDDLEWARE = [
     "django.middleware.common.CommonMiddleware",
     "django.middleware.csrf.CsrfViewMiddleware",
     "django.contrib.auth.middleware.AuthenticationMiddleware",
+    "clinic.middleware.IdleSessionMiddleware",  # the idle timeout, without a write per request
     "clinic.audit.AuditMiddleware",  # who viewed or changed which patient's data (needs request.user)
     "django.contrib.messages.middleware.MessageMiddleware",
     "django.middleware.clickjacking.XFrameOptionsMiddleware",
@@ -152,7 +153,10 @@ SECURE_REFERRER_POLICY = "same-origin"
 X_FRAME_OPTIONS = "DENY"
 # Shared clinic workstations: a session ends after SESSION_IDLE_MINUTES without a request, and with the browser.
 SESSION_COOKIE_AGE = envint("SESSION_IDLE_MINUTES", 15) * 60
-SESSION_SAVE_EVERY_REQUEST = True
+# the expiry moves forward at most once a minute (clinic.middleware.IdleSessionMiddleware), not by a write per
+# request: the idle timeout is exact to within SESSION_REFRESH_SECONDS
+SESSION_SAVE_EVERY_REQUEST = False
+SESSION_REFRESH_SECONDS = envint("SESSION_REFRESH_SECONDS", 60)
 SESSION_EXPIRE_AT_BROWSER_CLOSE = True
 
 ROOT_URLCONF = "clinic.urls"
