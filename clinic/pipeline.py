@@ -425,12 +425,51 @@ def register(job_id: int) -> str:
         return "failed"
 
 
+def _stored_under(folder: str) -> list:
+    from .filecheck import stored_names
+
+    return list(stored_names(default_storage, folder))
+
+
+def _comparison_files(pair: str) -> list:
+    """Stored files of the comparisons whose "<earlier pk>-<later pk>" matches the regular expression ``pair``:
+    compare_reconstructions stores "comparisons/<pair>-deformation*.ply" and "comparisons/<pair>/*.png"."""
+    import re
+
+    try:
+        dirs, files = default_storage.listdir("comparisons")
+    except FileNotFoundError:
+        return []
+    found = [f"comparisons/{n}" for n in files if re.fullmatch(rf"({pair})-deformation[^/]*\.ply", n)]
+    for d in dirs:
+        if re.fullmatch(pair, d):
+            found += _stored_under(f"comparisons/{d}")
+    return found
+
+
+def _forget_half_made(job: Job):
+    """What a registration that died half-way left, removed so that the next attempt stores one set: its torso
+    rows, their comparisons, and every file it stored, whether a row named it yet or not (the job's result
+    folder less the arms' surfaces; the comparison files of the removed torsos). Only the holder of the
+    registration's claim calls this, so nothing else is writing these files."""
+    keep = set(ArmTask.objects.filter(job=job).exclude(surface="").values_list("surface", flat=True))
+    files = [n for n in _stored_under(f"results/{job.uid}") if n not in keep]
+    old = list(Reconstruction.objects.filter(job=job))
+    if old:
+        files += _comparison_files(rf"\d+-({'|'.join(str(rec.pk) for rec in old)})")
+    for rec in old:
+        forget_comparisons_of(rec)
+    Reconstruction.objects.filter(job=job).delete()
+    if files:
+        log.warning("job %s: removing %d files a registration that died half-way left", job.uid, len(files))
+    transaction.on_commit(lambda: [default_storage.delete(f) for f in files])
+
+
 def _register(job: Job, claim) -> str:
     from recon_engine.reconstruction import register_arms
     from recon_engine.results import read_arm_surface, write_torso
 
-    # what a registration that died half-way left behind is made again
-    Reconstruction.objects.filter(job=job).delete()
+    _forget_half_made(job)
     rig = rig_from_dict(job.rig.description, f"rig {job.rig.serial}")
     surfaces, reports, failed = {}, {}, {}
     for task in job.arms.all():
@@ -532,6 +571,8 @@ def run_comparison(job_id: int) -> str:
             lease_until=_lease(), started=claim, attempt=F("attempt") + 1):
         return "not claimed"
     job = Job.objects.select_related("earlier__session__rig__clinic", "later__session__rig__clinic").get(pk=job_id)
+    if job.attempt > 1:
+        _forget_half_made_comparison(job.earlier_id, job.later_id)
     try:
         with heartbeat(Job.objects.filter(pk=job_id, claimed=claim)):
             # a pair the registration compared meanwhile is not computed again (nor stored twice)
@@ -546,6 +587,19 @@ def run_comparison(job_id: int) -> str:
             state=Job.SUCCEEDED, stage="done", percent=100, finished=_now(), lease_until=None):
         return "claim lost"
     return "succeeded"
+
+
+def _forget_half_made_comparison(earlier_id: int, later_id: int):
+    """The files an earlier attempt at this pair stored before it died (no comparison row names them yet)."""
+    from .models import Comparison
+
+    if Comparison.objects.filter(earlier_id=earlier_id, later_id=later_id).exists():
+        return
+    files = _comparison_files(f"{earlier_id}-{later_id}")
+    if files:
+        log.warning("comparison %s-%s: removing %d files an attempt that died left", earlier_id, later_id, len(files))
+    for name in files:
+        default_storage.delete(name)
 
 
 # --- scheduled work ---------------------------------------------------------------

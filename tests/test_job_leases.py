@@ -9,9 +9,11 @@ import json
 from datetime import timedelta
 
 import pytest
+from django.core.files.base import ContentFile
+from django.core.files.storage import default_storage
 from django.utils import timezone
 
-from clinic import pipeline, tasks
+from clinic import filecheck, pipeline, tasks
 from clinic.models import ArmTask, Calibration, CaptureSession, Job, Reconstruction, Rig
 from tests.service_flow import ClientApi, calibrate_set, register_rig, upload_capture
 
@@ -98,10 +100,21 @@ def test_it_hands_a_lapsed_arm_to_its_redelivery_and_refuses_a_live_one(client, 
 
     # a registration whose worker died half-way (its torso already stored): once its lease lapses, the sweeper
     # has it done again, and the half-made result is replaced
-    half_made = Reconstruction.objects.get(job=job).pk
+    half_made = Reconstruction.objects.get(job=job)
+    # and files it stored before a row named them: a picture of the analysis, a comparison's deformation map
+    strays = [default_storage.save(f"results/{job.uid}/pictures/back.png", ContentFile(b"half a picture")),
+              default_storage.save(f"comparisons/1-{half_made.pk}-deformation.ply", ContentFile(b"ply"))]
     Job.objects.filter(pk=job.pk).update(state=Job.RUNNING, stage="indices and pictures", finished=None,
                                          claimed=_ago(60), lease_until=_ago(1), dispatched=_ago(60))
     assert pipeline.redispatch_stalled(older_than=0) == [("clinic.tasks.register", job.pk)]
     job.refresh_from_db()
     assert (job.state, job.stage) == (Job.SUCCEEDED, "done"), job.error
-    assert Reconstruction.objects.get(job=job).pk != half_made
+    assert Reconstruction.objects.get(job=job).pk != half_made.pk
+    # one torso's files (the new attempt's, under the same names), and no stored file that no row names
+    assert not [name for name in strays if default_storage.exists(name)]
+    rec = Reconstruction.objects.get(job=job)
+    assert sorted(filecheck.stored_names(default_storage, f"results/{job.uid}")) == sorted(
+        [rec.torso.name, rec.mesh.name, rec.report_file.name, *rec.pictures.values(),
+         *(arm.surface.name for arm in job.arms.all())])
+    report = filecheck.check(grace=timedelta(0))
+    assert (report.orphans, report.missing) == ([], [])
