@@ -42,14 +42,49 @@ INDEX_FIGURES = ("lateral_deviation_mm.rms", "lateral_deviation_mm.max", "surfac
                  "kyphotic_angle_deg", "lordotic_angle_deg", "pelvic_obliquity_mm", "pelvic_torsion_deg")
 
 
+def _side_sizes(report: dict, key: str):
+    """``{"right": size, "left": size}`` of an index that reports each side's largest value (``X.max`` of an index
+    with ``right`` / ``left`` entries; a side without one is 0), or None."""
+    base, _, leaf = key.partition(".")
+    entry = report.get(base)
+    if leaf != "max" or not isinstance(entry, dict) or not ("right" in entry or "left" in entry):
+        return None
+    sizes = {}
+    for side in ("right", "left"):
+        size = (entry.get(side) or {}).get("size")
+        sizes[side] = float(size) if isinstance(size, (int, float)) and math.isfinite(size) else 0.0
+    return sizes
+
+
+def _figure_change(earlier: dict, later: dict, fa: dict, fb: dict, key: str):
+    """``(earlier, later)`` values of one figure for its change, or None when either scan lacks it.
+
+    A signed maximum (``X.max``: + the patient's right) can jump sides between two scans of the same back
+    when its two sides are nearly equal (an S curve): +8.0 deg on one scan, -7.9 deg on the re-scan, a
+    "change" of 15.9 deg that is no change. Such a figure is compared side by side instead: each side's
+    largest value against the same side's, and the side that changed most is reported (signed by its side).
+    """
+    if key not in fa or key not in fb:
+        return None
+    sa, sb = _side_sizes(earlier, key), _side_sizes(later, key)
+    if sa is None or sb is None:
+        return fa[key], fb[key]
+    side = max(("right", "left"), key=lambda s: (abs(sb[s] - sa[s]), s == "right"))
+    sign = 1.0 if side == "right" else -1.0
+    return sign * sa[side], sign * sb[side]
+
+
 def mdc_from_index_pairs(pairs, figures=INDEX_FIGURES) -> dict:
-    """MDC of each index from repeat pairs of ``torso-indices/1`` reports: ``{figure: {"sem", "mdc", "n"}}``."""
+    """MDC of each index from repeat pairs of ``torso-indices/1`` reports: ``{figure: {"sem", "mdc", "n"}}``.
+
+    A signed maximum's change is taken side by side (:func:`_figure_change`), as :func:`index_changes` does."""
     diffs = {}
     for a, b in pairs:
         fa, fb = flatten(a), flatten(b)
         for k in figures:
-            if k in fa and k in fb:
-                diffs.setdefault(k, []).append(fa[k] - fb[k])
+            pair = _figure_change(a, b, fa, fb, k)
+            if pair is not None:
+                diffs.setdefault(k, []).append(pair[0] - pair[1])
     out = {}
     for k, d in diffs.items():
         d = np.asarray(d)
@@ -148,7 +183,9 @@ def index_changes(earlier: dict, later: dict, mdc: dict | None = None, figures=I
 
     Returns ``{figure: {"earlier", "later", "change", "mdc", "exceeds_mdc"}}``. ``sides_agree=False``
     (the comparison's ``facing.consistent``): the two scans disagree on the patient's sides, and only the
-    figures that do not depend on them are compared.
+    figures that do not depend on them are compared. A signed maximum (``X.max``) is compared side by side:
+    ``earlier`` and ``later`` are then the largest values on the side that changed most (signed by the side),
+    which may differ from either scan's own maximum when that maximum jumped sides.
     """
     from .indices import SIDED
 
@@ -157,11 +194,13 @@ def index_changes(earlier: dict, later: dict, mdc: dict | None = None, figures=I
     for k in figures:
         if not sides_agree and k.split(".")[0] in SIDED:
             continue
-        if k in fa and k in fb:
+        pair = _figure_change(earlier, later, fa, fb, k)
+        if pair is not None:
             m = (mdc or {}).get(k)
             m = m.get("mdc") if isinstance(m, dict) else m
-            ch = fb[k] - fa[k]
-            out[k] = {"earlier": fa[k], "later": fb[k], "change": ch, "mdc": m, "exceeds_mdc": exceeds_mdc(ch, m)}
+            ch = pair[1] - pair[0]
+            out[k] = {"earlier": pair[0], "later": pair[1], "change": ch, "mdc": m,
+                      "exceeds_mdc": exceeds_mdc(ch, m)}
     return out
 
 
