@@ -11,7 +11,12 @@ something while it is handled:
 - the broker stopped during a bundle upload (the same);
 - the worker (a single process) SIGKILLed during an arm, a new one started;
 - one pool child of a prefork worker SIGKILLed during an arm (the main process lives);
+- the same two kills during the registration, and during the analysis (indices and pictures);
 - every database connection terminated (pg_terminate_backend) during an arm.
+
+A registration killed half-way has stored some of its files (the torso, some
+pictures, a comparison's map) before its rows name them; the attempt that
+takes it over removes them, so a scenario counts orphans after its job ends.
 
 A job is completed when it succeeded with one reconstruction, lost when it
 failed or never existed, stuck when it had not finished after ``--timeout``.
@@ -125,6 +130,14 @@ class Bench:
                 raise TimeoutError(f"job {job}: no arm running after {self.timeout} s")
             time.sleep(0.2)
 
+    def wait_stage(self, job: str, stage: str):
+        """Until the job's row says it is in ``stage`` (polled every 50 ms: the tiny rig's steps are short)."""
+        t0 = time.time()
+        while self.clinic.sql("SELECT stage FROM clinic_job WHERE uid = %s", job) != [(stage,)]:
+            if time.time() - t0 > self.timeout:
+                raise TimeoutError(f"job {job}: not at {stage!r} after {self.timeout} s")
+            time.sleep(0.05)
+
     def outcome(self, name: str, jobs: list, t0: float) -> dict:
         deadline = t0 + self.timeout
         states = {}
@@ -189,6 +202,31 @@ class Bench:
         os.kill(int(children[0]), signal.SIGKILL)
         return self.outcome("pool child SIGKILLed during an arm", [job], t0)
 
+    def worker_killed_during(self, stage, prefork):
+        """A single-process worker SIGKILLed while the job is at ``stage``; a new prefork worker takes over."""
+        stop(prefork)
+        solo = self.clinic.start_worker("--pool", "solo")
+        t0 = time.time()
+        job = self.upload()
+        self.wait_stage(job, stage)
+        os.kill(solo.pid, signal.SIGKILL)
+        solo.wait(timeout=10)
+        replacement = self.clinic.start_worker("-c", "2")
+        return self.outcome(f"worker SIGKILLed during the {STAGE_NAMES[stage]}", [job], t0), replacement
+
+    def pool_child_killed_during(self, stage, prefork):
+        """The pool child doing the step SIGKILLed (a prefork worker of one child; its main process lives)."""
+        stop(prefork)
+        single = self.clinic.start_worker("-c", "1")
+        t0 = time.time()
+        job = self.upload()
+        self.wait_stage(job, stage)
+        children = Path(f"/proc/{single.pid}/task/{single.pid}/children").read_text().split()
+        os.kill(int(children[0]), signal.SIGKILL)
+        out = self.outcome(f"pool child SIGKILLed during the {STAGE_NAMES[stage]}", [job], t0)
+        stop(single)
+        return out, self.clinic.start_worker("-c", "2")
+
     def db_connections_terminated(self):
         t0 = time.time()
         job = self.upload()
@@ -203,8 +241,12 @@ class Bench:
         return out
 
 
+# the job's stage while each step runs (clinic/pipeline.py)
+STAGE_NAMES = {"registration": "registration", "indices and pictures": "analysis"}
+KILLS_IN_STAGES = {f"{who}_killed_during_{name}": (who, stage) for stage, name in STAGE_NAMES.items()
+                   for who in ("worker", "pool_child")}
 STEPS = ["broker_down_during_finalize", "broker_down_during_bundle", "worker_killed_during_arm",
-         "pool_child_killed_during_arm", "db_connections_terminated"]
+         "pool_child_killed_during_arm", *KILLS_IN_STAGES, "db_connections_terminated"]
 
 
 def stop(proc):
@@ -240,13 +282,16 @@ def main():
                 out, prefork = bench.worker_killed_during_arm(prefork)
             elif step == "pool_child_killed_during_arm":
                 out = bench.pool_child_killed_during_arm(prefork)
+            elif step in KILLS_IN_STAGES:
+                who, stage = KILLS_IN_STAGES[step]
+                out, prefork = getattr(bench, f"{who}_killed_during")(stage, prefork)
             else:
                 out = getattr(bench, step)()
             results.append(out)
             print(json.dumps(out), flush=True)
-    print(f"\n{'scenario':42} completed lost stuck orphaned missing  seconds")
+    print(f"\n{'scenario':46} completed lost stuck orphaned missing  seconds")
     for r in results:
-        print(f"{r['scenario']:42} {r['completed']:9} {r['lost']:4} {r['stuck']:5} {r['orphaned']:8} "
+        print(f"{r['scenario']:46} {r['completed']:9} {r['lost']:4} {r['stuck']:5} {r['orphaned']:8} "
               f"{r['missing']:7} {r['seconds']:8}")
     bad = sum(r["lost"] + r["stuck"] + r["orphaned"] + r["missing"] for r in results)
     print("target met: zero lost, stuck, orphaned, missing" if not bad else f"TARGET MISSED ({bad})")
