@@ -10,7 +10,8 @@ Plain Python over numpy arrays (no Django). Stages, one module each:
 - :mod:`analysis.indices`: clinical surface indices (``torso-indices/1``)
 - :mod:`analysis.compare`: visit to visit (``torso-comparison/1``)
 - :mod:`analysis.repeatability`: SEM, minimal detectable change, flags
-- :mod:`analysis.pictures`: off-screen pictures (pyvista, matplotlib)
+- :mod:`analysis.pictures`: off-screen pictures (shaded surfaces rasterised in numpy by
+  :mod:`analysis.render`, matplotlib)
 - :mod:`analysis.synthetic`: scan-like samples of known surfaces (tests, validation)
 
 Parameters: :mod:`analysis.config`. Documentation: ``docs/analysis.md``.

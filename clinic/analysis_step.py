@@ -3,7 +3,8 @@
 Calls ``analysis`` exactly as ``torsoscan indices`` and ``torsoscan compare``
 do, and keeps their files and pictures in storage:
 
-- every torso gets its clinical indices, its shaded views and asymmetry map;
+- every torso gets its clinical indices, its shaded views (the reconstruction's mesh, with the
+  landmarks and the line of symmetry) and asymmetry map;
 - every torso is compared with each earlier visit's (a change) and with the
   earlier captures of its own visit (a repeat pair: the rig's repeatability);
 - the minimal detectable change of every figure comes from all repeat pairs
@@ -29,6 +30,15 @@ def _local(field_or_name, dest: Path) -> Path:
     return dest
 
 
+def _stored(field) -> bool:
+    """Whether a file field names a file that storage holds."""
+    name = getattr(field, "name", field)
+    try:
+        return bool(name) and default_storage.exists(name)
+    except (OSError, ValueError):
+        return False
+
+
 def _store(folder: str, path: Path) -> str:
     with open(path, "rb") as fh:
         return default_storage.save(f"{folder}/{Path(path).name}", File(fh))
@@ -41,7 +51,10 @@ def analyse_reconstruction(rec: Reconstruction) -> Reconstruction:
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        out = torso_pictures(_local(rec.torso, tmp / "torso.ply"), tmp / "pictures", landmarks=rec.landmarks)
+        # the reconstruction's display mesh, when stored, is what the pictures show (shaded), else the points
+        extra = {"mesh_ply": _local(rec.mesh, tmp / "torso-mesh.ply")} if _stored(rec.mesh) else {}
+        out = torso_pictures(_local(rec.torso, tmp / "torso.ply"), tmp / "pictures", landmarks=rec.landmarks,
+                             **extra)
         folder = f"results/{rec.job.uid}/pictures"
         for old in (rec.pictures or {}).values():
             default_storage.delete(old)
@@ -99,7 +112,14 @@ def compare_reconstructions(earlier: Reconstruction, later: Reconstruction) -> C
         write_comparison(tmp / "out", result)
         report = json.loads((tmp / "out" / "report.json").read_text())
         anm = (mdc.get("average_normal_distance_mm") or {}).get("mdc")
-        pics = comparison_pictures(tmp / "out", tmp / "pictures", mdc_mm=anm)
+        # the map drawn on the later reconstruction's mesh, in the earlier torso's frame; its arms, neck and head
+        # masked by the earlier torso's own indices (frame, vertebra prominens)
+        extra = {}
+        if _stored(later.mesh):
+            extra["mesh_ply"] = _local(later.mesh, tmp / "later-mesh.ply")
+        if earlier.indices:
+            extra["indices"] = earlier.indices
+        pics = comparison_pictures(tmp / "out", tmp / "pictures", mdc_mm=anm, **extra)
         comparison = Comparison(earlier=earlier, later=later, report=report)
         with open(tmp / "out" / "deformation.ply", "rb") as fh:
             comparison.deformation.save(f"{earlier.pk}-{later.pk}-deformation.ply", File(fh), save=False)

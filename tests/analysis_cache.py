@@ -62,10 +62,12 @@ def reuse_torso_pictures(monkeypatch):
 
     compute = analysis.pictures.torso_pictures
 
-    def torso_pictures(torso_ply, out_dir, landmarks=None):
+    def torso_pictures(torso_ply, out_dir, landmarks=None, mesh_ply=None):
         key = _key(torso_ply, landmarks)
+        if mesh_ply is not None:  # the pictures are drawn on the mesh: another mesh, other pictures
+            key = hashlib.sha256((key + hashlib.sha256(Path(mesh_ply).read_bytes()).hexdigest()).encode()).hexdigest()
         if key not in _RESULTS:
-            _RESULTS[key] = compute(torso_ply, _FOLDER / key, landmarks=landmarks)
+            _RESULTS[key] = compute(torso_ply, _FOLDER / key, landmarks=landmarks, mesh_ply=mesh_ply)
         first = _RESULTS[key]
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
