@@ -5,6 +5,8 @@ clinics the user is a member of (404 for the rest). A rig authenticates with
 its own :class:`RigKey` and may only upload for itself.
 """
 
+import contextlib
+import contextvars
 import hashlib
 import secrets
 import uuid
@@ -76,6 +78,11 @@ class Visit(models.Model):
 
     class Meta:
         ordering = ["date", "id"]
+        indexes = [
+            # each patient's latest visit (the worklist's overdue list), read from the index alone
+            models.Index(fields=["patient", "-date", "-id"], name="visit_latest_per_patient"),
+            models.Index(fields=["date"], name="visit_date"),  # today's visits
+        ]
 
     def __str__(self):
         return f"{self.patient} on {self.date}"
@@ -350,8 +357,33 @@ class Reconstruction(models.Model):
         ordering = ["-created"]
 
 
+_repeat_pairs_only = contextvars.ContextVar("repeat_pairs_only", default=False)
+
+
+@contextlib.contextmanager
+def repeat_pairs_only():
+    """Inside, ``Comparison.objects`` holds only the repeat pairs (two scans of one visit), chosen by the
+    database: the clinic's MDC (``analysis_step.clinic_mdc``, ``repeat_pairs``) then reads those, not every
+    comparison of the clinic, and says the same (it keeps the repeat pairs only)."""
+    token = _repeat_pairs_only.set(True)
+    try:
+        yield
+    finally:
+        _repeat_pairs_only.reset(token)
+
+
+class ComparisonManager(models.Manager):
+    def get_queryset(self):
+        qs = super().get_queryset()
+        if _repeat_pairs_only.get():
+            qs = qs.filter(earlier__session__visit_id=models.F("later__session__visit_id"))
+        return qs
+
+
 class Comparison(models.Model):
     """A later visit's torso against an earlier one (filled by the analysis)."""
+
+    objects = ComparisonManager()
 
     earlier = models.ForeignKey(Reconstruction, models.CASCADE, related_name="+")
     later = models.ForeignKey(Reconstruction, models.CASCADE, related_name="comparisons")
@@ -359,14 +391,24 @@ class Comparison(models.Model):
     deformation = models.FileField(upload_to="comparisons/", max_length=500, blank=True)
     pictures = models.JSONField(default=dict, blank=True, help_text="Picture name -> storage name")
     created = models.DateTimeField(default=timezone.now)
+    repeat = models.BooleanField(default=False, editable=False,
+                                 help_text="Two scans of one visit (is_repeat), kept on save: the pages find the "
+                                           "clinic's repeat pairs by it without joining every comparison")
 
     @property
     def is_repeat(self):
         """Two captures of one visit: a repeatability pair, not a change."""
         return self.earlier.session.visit_id == self.later.session.visit_id
 
+    def save(self, *args, **kwargs):
+        self.repeat = self.is_repeat
+        if kwargs.get("update_fields") is not None:
+            kwargs["update_fields"] = {*kwargs["update_fields"], "repeat"}
+        super().save(*args, **kwargs)
+
     class Meta:
         constraints = [models.UniqueConstraint(fields=["earlier", "later"], name="one_comparison_per_pair")]
+        indexes = [models.Index(fields=["later"], condition=models.Q(repeat=True), name="comparison_repeat_pairs")]
         ordering = ["-created"]
 
 

@@ -23,7 +23,9 @@ from django.core import validators
 from django.core.exceptions import PermissionDenied
 from django.core.files.storage import default_storage
 from django.db import connection, transaction
-from django.db.models import Q
+from django.core.cache import cache
+from django.core.paginator import Paginator
+from django.db.models import Count, Exists, F, Max, OuterRef, Q
 from django.core.files.base import ContentFile
 from django.http import FileResponse, Http404, HttpResponse, JsonResponse
 from django.shortcuts import get_object_or_404, redirect, render
@@ -32,7 +34,8 @@ from django.utils import timezone
 from django.views.decorators.http import require_http_methods, require_POST
 
 from . import api, labels, pipeline
-from .models import Comparison, Job, Member, Patient, Reconstruction, Rig, Visit, clinics_of
+from .models import (CaptureSession, Comparison, Job, Member, Patient, Reconstruction, Rig, StabilityCheck, Visit,
+                     clinics_of, repeat_pairs_only)
 from .validation import MAX_NOTES
 
 # Who may do what. Actions the API has (re-running a job, issuing and revoking a rig's keys) are run through
@@ -135,19 +138,81 @@ def _scans(patient) -> list:
     return recs
 
 
-def _mdc(clinic):
-    from .analysis_step import clinic_mdc
+def _best_of_visits(scans) -> dict:
+    """Each visit's torso shown to clinicians (as :func:`_best`: its latest good reconstruction), from the
+    patient's :func:`_scans`, by visit id: one query for a whole history."""
+    best = {}
+    for r in scans:  # in time order within each visit
+        cur = best.get(r.session.visit_id)
+        if cur is None or (r.created, r.pk) > (cur.created, cur.pk):
+            best[r.session.visit_id] = r
+    return best
 
-    return clinic_mdc(clinic)
+
+def _last_scan_jobs(p) -> dict:
+    """Each visit's latest scan job (as ``_scan_jobs(visit).first()``), by visit id: one query."""
+    last = {}
+    for job in (Job.objects.filter(session__visit__patient=p).exclude(kind=Job.COMPARISON)
+                .annotate(visit_pk=F("session__visit_id")).order_by("-created")):
+        last.setdefault(job.visit_pk, job)
+    return last
+
+
+# The clinic's MDC and repeat-pair count rest on every repeat pair of its rigs: reading them all on each page
+# grows with the clinic's history, so each is kept in the cache under the state of those pairs (one aggregate
+# query on the repeat pairs' index): a repeat pair added or removed (a landmark correction removes the
+# comparisons of its torso) is a new key. Computed, on a miss, by analysis_step's own functions, made to read the
+# repeat pairs only (not every comparison of the clinic: at 10 000 patients, gigabytes of reports).
+MDC_CACHE_SECONDS = 24 * 3600
+
+
+def _repeat_state(clinic) -> str:
+    """A key of the clinic's repeat pairs (same-visit comparisons) as they stand; asked once per clinic object
+    (a request's: the MDC and the noise of one page rest on the same pairs)."""
+    key = getattr(clinic, "_repeat_state_key", None)
+    if key is None:
+        state = _repeat_comparisons(clinic).aggregate(n=Count("pk"), last=Max("pk"), newest=Max("created"))
+        newest = state["newest"].timestamp() if state["newest"] else None
+        key = f"{clinic.pk}:{clinic.created.timestamp()}:{state['n']}:{state['last']}:{newest}"
+        clinic._repeat_state_key = key
+    return key
+
+
+def _cached_by_repeat_state(what, clinic, compute):
+    key = f"torsoscan:{what}:{_repeat_state(clinic)}"
+    value = cache.get(key)
+    if value is None:
+        value = compute(clinic)
+        cache.set(key, value, MDC_CACHE_SECONDS)
+    return value
+
+
+def _repeat_comparisons(clinic):
+    """The clinic's repeat pairs (two scans of one visit, marked so when stored), chosen by the database."""
+    return Comparison.objects.filter(repeat=True, later__session__rig__clinic=clinic)
+
+
+def _from_repeat_pairs(compute):
+    """``compute(clinic)`` reading the clinic's repeat pairs only (see ``models.repeat_pairs_only``)."""
+    def run(clinic):
+        with repeat_pairs_only():
+            return compute(clinic)
+    return run
+
+
+def _mdc(clinic):
+    from . import analysis_step
+
+    return _cached_by_repeat_state("mdc", clinic, _from_repeat_pairs(analysis_step.clinic_mdc))
 
 
 def _noise(clinic) -> dict:
     """What the noise verdicts rest on: the clinic's repeat pairs and how many are needed before any flag."""
     from analysis.repeatability import MIN_REPEAT_PAIRS
 
-    from .analysis_step import repeat_pairs
+    from . import analysis_step
 
-    pairs = repeat_pairs(clinic)
+    pairs = _cached_by_repeat_state("repeat-pairs", clinic, _from_repeat_pairs(analysis_step.repeat_pairs))
     return {"pairs": pairs, "needed": MIN_REPEAT_PAIRS, "ready": pairs >= MIN_REPEAT_PAIRS}
 
 
@@ -344,6 +409,7 @@ def _pictures(kind, obj) -> list:
 
 
 WORKLIST_LIMIT = 50  # overdue patients listed on the home page, the longest overdue first
+PATIENTS_PER_PAGE = 50  # the patient list (and a search's results), by name, a page at a time
 
 
 def months_before(day, months):
@@ -364,7 +430,9 @@ def _worklist(user, today) -> dict:
 
     months = getattr(settings, "FOLLOW_UP_MONTHS", 6)
     visits_today = (Visit.objects.filter(patient__in=_patients(user), date=today)
-                    .select_related("patient", "patient__clinic").order_by("patient__name", "id"))
+                    .select_related("patient", "patient__clinic").order_by("patient__name", "id")
+                    .annotate(scanned=Exists(CaptureSession.objects.filter(visit=OuterRef("pk")))))
+    # each patient's latest visit: index lookups (visit_latest_per_patient)
     latest = Visit.objects.filter(patient=OuterRef("pk")).order_by("-date", "-id")
     cutoff = months_before(today, months)
     overdue = []
@@ -373,9 +441,10 @@ def _worklist(user, today) -> dict:
                 .filter(Q(due__lt=today) | Q(due__isnull=True, last_visit__lt=cutoff))
                 .values("pk", "name", "identifier", "last_visit", "due")):
         row["due_since"] = row["due"] or months_before(row["last_visit"], -months)
-        row["late"] = _span(row["due_since"], today)
         overdue.append(row)
     overdue.sort(key=lambda r: (r["due_since"], r["name"]))
+    for row in overdue[:WORKLIST_LIMIT]:
+        row["late"] = _span(row["due_since"], today)
     return {"today": today, "visits_today": visits_today, "overdue": overdue[:WORKLIST_LIMIT],
             "overdue_count": len(overdue), "follow_up_months": months}
 
@@ -386,14 +455,21 @@ def patients(request):
     """The worklist (today's visits, overdue follow-ups), then the patients of the user's clinics, with a
     search by name or identifier."""
     q = request.GET.get("q", "").strip()
-    rows = _patients(request.user).select_related("clinic")
+    rows = _patients(request.user).select_related("clinic").order_by("name", "pk")
     if q:
         rows = rows.filter(Q(name__icontains=q) | Q(identifier__icontains=q))
+    page = Paginator(rows, PATIENTS_PER_PAGE).get_page(request.GET.get("page"))
+    visits = dict(Visit.objects.filter(patient__in=[p.pk for p in page]).values("patient")
+                  .annotate(n=Count("pk")).values_list("patient", "n"))
+    for p in page:
+        p.visit_count = visits.get(p.pk, 0)
     rigs = Rig.objects.filter(clinic__in=clinics_of(request.user))
     administered = [c for c in clinics_of(request.user) if _may(request, c.pk, MANAGE_MEMBERS)]
-    return render(request, "clinic/patients.html", {"patients": rows, "q": q, "rigs": rigs,
+    return render(request, "clinic/patients.html", {"patients": page, "page": page, "q": q, "rigs": rigs,
                                                     "administered": administered,
-                                                    "worklist": _worklist(request.user, timezone.localdate()),
+                                                    # a search shows the matching patients only
+                                                    "worklist": None if q else _worklist(request.user,
+                                                                                         timezone.localdate()),
                                                     "may_edit": any(_may(request, c.pk, EDIT_PATIENTS)
                                                                     for c in clinics_of(request.user))})
 
@@ -401,13 +477,13 @@ def patients(request):
 @login_required
 def patient(request, patient_id):
     """A patient's history: the headline (what changed beyond noise), visits, index trends, the latest pictures."""
-    p = get_object_or_404(_patients(request.user), pk=patient_id)
+    p = get_object_or_404(_patients(request.user).select_related("clinic"), pk=patient_id)
     scans = _scans(p)
+    best, last_jobs = _best_of_visits(scans), _last_scan_jobs(p)
     visits = []
     for v in p.visits.all():
-        rec = _best(v)
-        jobs = _scan_jobs(v)
-        visits.append({"visit": v, "rec": rec, "job": jobs.first(), "flat": _flat(rec.indices if rec else None),
+        rec = best.get(v.pk)
+        visits.append({"visit": v, "rec": rec, "job": last_jobs.get(v.pk), "flat": _flat(rec.indices if rec else None),
                        "age": _age(p.date_of_birth, v.date), "quality": _quality(rec) if rec else None,
                        "scans": sum(1 for s in scans if s.session.visit_id == v.pk)})
     mdc = _mdc(p.clinic)
@@ -445,8 +521,9 @@ def patient_trend(request, patient_id):
     MDC, then served from storage."""
     from analysis import pictures
 
-    p = get_object_or_404(_patients(request.user), pk=patient_id)
-    series = [(v.date, rec.pk, rec.indices) for v in p.visits.all() if (rec := _best(v)) and rec.indices]
+    p = get_object_or_404(_patients(request.user).select_related("clinic"), pk=patient_id)
+    best = _best_of_visits(_scans(p))
+    series = [(v.date, rec.pk, rec.indices) for v in p.visits.all() if (rec := best.get(v.pk)) and rec.indices]
     if not series:
         raise Http404("no visit with a torso yet")
     mdc = {k: v["mdc"] for k, v in _mdc(p.clinic).items()}
@@ -703,9 +780,13 @@ def _calibration_due(r, now) -> dict:
 
 def _rig_page(request, r, new_key=None):
     calibrations = list(r.calibrations.all().order_by("calibrated_at"))
+    by_camera = {}  # every camera's checks in one query
+    for check in (StabilityCheck.objects.filter(camera__rig=r).annotate(calibrated_at=F("calibration__calibrated_at"))
+                  .order_by("calibration__calibrated_at")):
+        by_camera.setdefault(check.camera_id, []).append(check)
     cams = []
     for cam in r.cameras.all():
-        checks = list(cam.stability_checks.select_related("calibration").order_by("calibration__calibrated_at"))
+        checks = by_camera.get(cam.pk, [])
         cams.append({"camera": cam, "checks": checks, "last": checks[-1] if checks else None})
     cal_rows = []
     for c in calibrations:
@@ -739,25 +820,49 @@ def revoke_rig_key(request, serial, prefix):
     return redirect("rig", serial=serial)
 
 
+MEASURES = (("zrot_px", "ZROT"), ("rot_px", "ROT"), ("spr_px", "SPR"), ("arm_px", "ARM"))
+
+
 @login_required
 def rig_stability_chart(request, serial):
-    """Every measure of every camera over the rig's calibrations against its threshold (SVG, drawn on request)."""
-    from matplotlib.figure import Figure  # not pyplot: its global state is not safe across request threads
+    """Every measure of every camera over the rig's calibrations against its threshold (SVG): drawn once per
+    state of the rig's checks, then served from storage (as the patients' trend pictures)."""
+    import hashlib
 
     r = get_object_or_404(Rig.objects.filter(clinic__in=clinics_of(request.user)), serial=serial)
-    cams = [c for c in r.cameras.all() if c.stability_checks.exists()]
+    by_camera = {}  # every check of the rig in one query
+    for check in (StabilityCheck.objects.filter(camera__rig=r).annotate(calibrated_at=F("calibration__calibrated_at"))
+                  .order_by("calibration__calibrated_at")):
+        by_camera.setdefault(check.camera_id, []).append(check)
+    cams = [c for c in r.cameras.all() if by_camera.get(c.pk)]
     if not cams:
         raise Http404("no stability check yet")
+    series = {field: [(cam.name, [(c.calibrated_at, getattr(c, field) / (c.thresholds or {}).get(
+        field, c.threshold_px)) for c in by_camera[cam.pk] if getattr(c, field) is not None]) for cam in cams]
+        for field, _ in MEASURES}
+    state = json.dumps(series, sort_keys=True, default=str)
+    name = f"charts/rig-{r.pk}/stability-{hashlib.sha256(state.encode()).hexdigest()[:24]}.svg"
+    if default_storage.exists(name):
+        return FileResponse(default_storage.open(name, "rb"), content_type="image/svg+xml")
+    data = _stability_svg(series).encode()
+    try:  # the older states' charts of this rig go
+        folder = str(Path(name).parent)
+        for old in default_storage.listdir(folder)[1]:
+            default_storage.delete(f"{folder}/{old}")
+    except (OSError, NotImplementedError):
+        pass
+    default_storage.save(name, ContentFile(data))
+    return HttpResponse(data, content_type="image/svg+xml")
+
+
+def _stability_svg(series) -> str:
+    from matplotlib.figure import Figure  # not pyplot: its global state is not safe across request threads
+
     fig = Figure(figsize=(15, 3.6))
     axes = fig.subplots(1, 4, sharex=True)
-    measures = (("zrot_px", "ZROT"), ("rot_px", "ROT"), ("spr_px", "SPR"), ("arm_px", "ARM"))
-    for ax, (field, title) in zip(axes, measures):
-        for cam in cams:
-            checks = [c for c in cam.stability_checks.select_related("calibration").order_by("calibration__calibrated_at")
-                      if getattr(c, field) is not None]
-            xs = [c.calibration.calibrated_at for c in checks]
-            ys = [getattr(c, field) / (c.thresholds or {}).get(field, c.threshold_px) for c in checks]
-            ax.plot(xs, ys, "o-", lw=1, ms=3, label=cam.name)
+    for ax, (field, title) in zip(axes, MEASURES):
+        for cam, points in series[field]:
+            ax.plot([x for x, _ in points], [y for _, y in points], "o-", lw=1, ms=3, label=cam)
         ax.axhline(1.0, color="#c0392b", lw=1, ls="--")
         ax.set_title(f"{title} / threshold (above 1: unstable)", fontsize=9)
         ax.tick_params(labelsize=7)
@@ -767,7 +872,7 @@ def rig_stability_chart(request, serial):
     fig.tight_layout()
     buf = io.StringIO()
     fig.savefig(buf, format="svg")
-    return HttpResponse(buf.getvalue(), content_type="image/svg+xml")
+    return buf.getvalue()
 
 
 @login_required
