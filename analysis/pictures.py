@@ -323,6 +323,38 @@ def torso_views(torso: Torso | str, out_dir, frame: PatientFrame | None = None, 
     return out
 
 
+def render_view(torso: Torso | str, frame: PatientFrame, view: str, size=(800, 1000), mesh=None) -> render.Rendered:
+    """The ``view`` picture as :func:`torso_views` renders it (its projection, z-buffer and shading), undrawn."""
+    if not isinstance(torso, Torso):
+        torso = read_torso(torso)
+    if view not in VIEWS:
+        raise ValueError(f"view {view!r}: one of {', '.join(VIEWS)}")
+    (_, r), = _render_views(_Scene(torso.points, torso.normals, mesh), frame, [view], *size)
+    return r
+
+
+def pick_point(torso: Torso | str, frame: PatientFrame, view: str, x_px: float, y_px: float, size=(800, 1000),
+               mesh=None, radius_px: float = 12.0):
+    """The skin point under pixel ``(x_px, y_px)`` of the ``view`` picture that :func:`torso_views` draws with the
+    same torso, frame, size and mesh (what a clinician clicked on): rig frame, mm; None when no skin was drawn
+    within ``radius_px`` of it. The view is rendered again (the same projection, deterministic), and the point
+    is the surface's own at that pixel (its depth from the z-buffer), not the nearest measured point."""
+    r = render_view(torso, frame, view, size, mesh)
+    rows, cols = np.nonzero(r.covered)
+    if not len(rows):
+        return None
+    # the drawn pixel nearest the click (the click itself when it is on the skin)
+    d2 = (cols + 0.5 - x_px) ** 2 + (rows + 0.5 - y_px) ** 2
+    k = int(np.argmin(d2))
+    if d2[k] > radius_px ** 2:
+        return None
+    row, col = rows[k], cols[k]
+    pl = r.placement
+    screen = np.array([pl.centre_mm[0] + (col + 0.5 - 0.5 * pl.width) / pl.scale,
+                       pl.centre_mm[1] - (row + 0.5 - 0.5 * pl.height) / pl.scale, r.depth[row, col]])
+    return screen @ pl.basis  # basis rows: screen right, up, towards the viewer (orthonormal, rig frame)
+
+
 def _facing_titles(report: dict) -> dict:
     """View titles that say how the patient's facing was found (and when it is in doubt)."""
     facing = (report.get("frame") or {}).get("facing") or {}
