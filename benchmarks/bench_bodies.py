@@ -204,8 +204,11 @@ def summarise(bodies, mdc) -> dict:
         if err:
             rows["error"] = {"mean": float(np.mean(err)), "mean_abs": float(np.mean(np.abs(err))),
                              "max_abs": float(np.max(np.abs(err)))}
-        ch = [b["scans"]["rescan"]["flat"][k] - b["scans"]["baseline"]["flat"][k] for b in bodies
-              if all("flat" in b["scans"][n] and k in b["scans"][n]["flat"] for n in ("baseline", "rescan"))]
+        # the change as the clinic computes it (a signed maximum side by side: analysis.repeatability)
+        ch = [c[k]["change"] for c in (index_changes(b["scans"]["baseline"]["report"], b["scans"]["rescan"]["report"],
+                                                     figures=(k,))
+                                       for b in bodies if all("report" in b["scans"][n] for n in ("baseline", "rescan")))
+              if k in c]
         if ch:
             rows["rescan_change"] = {"mean_abs": float(np.mean(np.abs(ch))), "max_abs": float(np.max(np.abs(ch)))}
         m = (mdc.get(k) or {}).get("mdc")
