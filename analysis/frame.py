@@ -40,6 +40,11 @@ class PatientFrame:
         return {"origin_mm": self.origin.tolist(), "left": self.R[0].tolist(), "posterior": self.R[1].tolist(),
                 "up": self.R[2].tolist()}
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "PatientFrame":
+        """The frame :meth:`to_dict` wrote (a torso-indices/1 report's ``frame``)."""
+        return cls(R=np.array([d["left"], d["posterior"], d["up"]], float), origin=np.asarray(d["origin_mm"], float))
+
 
 def frame_from_posterior(posterior, origin) -> PatientFrame:
     """The frame whose y is the horizontal part of ``posterior`` and z the rig's +Z."""

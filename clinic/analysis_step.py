@@ -23,14 +23,15 @@ from django.db import IntegrityError, transaction
 from .models import Comparison, Reconstruction
 
 
-def _local(field_or_name, dest: Path) -> Path:
+def local_copy(field_or_name, dest: Path) -> Path:
+    """A stored file (a file field or a storage name) copied to the local path ``dest`` (the analysis reads files)."""
     name = getattr(field_or_name, "name", field_or_name)
     with default_storage.open(name, "rb") as src, open(dest, "wb") as out:
         shutil.copyfileobj(src, out, 1 << 20)
     return dest
 
 
-def _stored(field) -> bool:
+def stored(field) -> bool:
     """Whether a file field names a file that storage holds."""
     name = getattr(field, "name", field)
     try:
@@ -52,17 +53,18 @@ def analyse_reconstruction(rec: Reconstruction) -> Reconstruction:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         # the reconstruction's display mesh, when stored, is what the pictures show (shaded), else the points
-        extra = {"mesh_ply": _local(rec.mesh, tmp / "torso-mesh.ply")} if _stored(rec.mesh) else {}
-        out = torso_pictures(_local(rec.torso, tmp / "torso.ply"), tmp / "pictures", landmarks=rec.landmarks,
+        extra = {"mesh_ply": local_copy(rec.mesh, tmp / "torso-mesh.ply")} if stored(rec.mesh) else {}
+        out = torso_pictures(local_copy(rec.torso, tmp / "torso.ply"), tmp / "pictures", landmarks=rec.landmarks,
                              **extra)
         folder = f"results/{rec.job.uid}/pictures"
-        for old in (rec.pictures or {}).values():
-            default_storage.delete(old)
         pictures = {Path(p).stem: _store(folder, Path(p)) for p in out["views"]}
         pictures["asymmetry"] = _store(folder, Path(out["asymmetry"]))
+    replaced = [name for name in (rec.pictures or {}).values() if name not in pictures.values()]
     rec.indices = clean(out["indices"])
     rec.pictures = pictures
     rec.save(update_fields=["indices", "pictures"])
+    # the old pictures go once the row naming the new ones is committed (a rolled-back save keeps them named)
+    transaction.on_commit(lambda: [default_storage.delete(name) for name in replaced])
     return rec
 
 
@@ -76,8 +78,8 @@ def clinic_mdc(clinic, usable_only: bool = True) -> dict:
     """
     from analysis.repeatability import mdc_from_comparisons, mdc_from_index_pairs, scanner_mdc, usable_mdc
 
-    pairs = [c for c in Comparison.objects.filter(later__session__rig__clinic=clinic)
-             .select_related("earlier__session", "later__session") if c.is_repeat]
+    pairs = list(Comparison.objects.filter(repeat=True, later__session__rig__clinic=clinic)
+                 .select_related("earlier", "later"))
     mdc = mdc_from_comparisons([c.report for c in pairs])
     mdc.update(mdc_from_index_pairs([(c.earlier.indices, c.later.indices) for c in pairs
                                      if c.earlier.indices and c.later.indices]))
@@ -89,8 +91,7 @@ def clinic_mdc(clinic, usable_only: bool = True) -> dict:
 
 def repeat_pairs(clinic) -> int:
     """How many same-visit repeat pairs the clinic's rigs have given (what its noise verdicts rest on)."""
-    return sum(1 for c in Comparison.objects.filter(later__session__rig__clinic=clinic)
-               .select_related("earlier__session", "later__session") if c.is_repeat)
+    return Comparison.objects.filter(repeat=True, later__session__rig__clinic=clinic).count()
 
 
 def compare_reconstructions(earlier: Reconstruction, later: Reconstruction) -> Comparison:
@@ -105,8 +106,8 @@ def compare_reconstructions(earlier: Reconstruction, later: Reconstruction) -> C
     mdc = clinic_mdc(later.session.rig.clinic)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        result = compare_torsos(read_torso(_local(earlier.torso, tmp / "earlier.ply")),
-                                read_torso(_local(later.torso, tmp / "later.ply")),
+        result = compare_torsos(read_torso(local_copy(earlier.torso, tmp / "earlier.ply")),
+                                read_torso(local_copy(later.torso, tmp / "later.ply")),
                                 landmarks=earlier.landmarks or None, later_landmarks=later.landmarks or None,
                                 mdc={k: v["mdc"] for k, v in mdc.items()} or None)
         write_comparison(tmp / "out", result)
@@ -115,8 +116,8 @@ def compare_reconstructions(earlier: Reconstruction, later: Reconstruction) -> C
         # the map drawn on the later reconstruction's mesh, in the earlier torso's frame; its arms, neck and head
         # masked by the earlier torso's own indices (frame, vertebra prominens)
         extra = {}
-        if _stored(later.mesh):
-            extra["mesh_ply"] = _local(later.mesh, tmp / "later-mesh.ply")
+        if stored(later.mesh):
+            extra["mesh_ply"] = local_copy(later.mesh, tmp / "later-mesh.ply")
         if earlier.indices:
             extra["indices"] = earlier.indices
         pics = comparison_pictures(tmp / "out", tmp / "pictures", mdc_mm=anm, **extra)

@@ -5,8 +5,6 @@ clinics the user is a member of (404 for the rest). A rig authenticates with
 its own :class:`RigKey` and may only upload for itself.
 """
 
-import contextlib
-import contextvars
 import hashlib
 import secrets
 import uuid
@@ -230,7 +228,9 @@ class Job(models.Model):
     """The durable state of a calibration, a reconstruction or a comparison: what a technician looks at."""
 
     CALIBRATION, RECONSTRUCTION, COMPARISON = "calibration", "reconstruction", "comparison"
-    KINDS = [(CALIBRATION, "Calibration"), (RECONSTRUCTION, "Reconstruction"), (COMPARISON, "Comparison")]
+    LANDMARKS = "landmarks"  # a torso's indices and pictures again, from a clinician's corrected landmarks
+    KINDS = [(CALIBRATION, "Calibration"), (RECONSTRUCTION, "Reconstruction"), (COMPARISON, "Comparison"),
+             (LANDMARKS, "Landmark correction")]
     QUEUED, RUNNING, SUCCEEDED, FAILED = "queued", "running", "succeeded", "failed"
     STATES = [(QUEUED, "Queued"), (RUNNING, "Running"), (SUCCEEDED, "Succeeded"), (FAILED, "Failed")]
 
@@ -243,7 +243,7 @@ class Job(models.Model):
     calibration = models.ForeignKey("Calibration", models.PROTECT, null=True, blank=True, related_name="used_by",
                                     help_text="The calibration a reconstruction used")
     # a comparison asked for on its page: the two torsos (the session is the later torso's, so the job is the
-    # patient's for the audit trail, an export and an erasure)
+    # patient's for the audit trail, an export and an erasure); a landmark correction: ``later``, the torso
     earlier = models.ForeignKey("Reconstruction", models.CASCADE, null=True, blank=True, related_name="+")
     later = models.ForeignKey("Reconstruction", models.CASCADE, null=True, blank=True, related_name="+")
     state = models.CharField(max_length=16, choices=STATES, default=QUEUED)
@@ -357,33 +357,8 @@ class Reconstruction(models.Model):
         ordering = ["-created"]
 
 
-_repeat_pairs_only = contextvars.ContextVar("repeat_pairs_only", default=False)
-
-
-@contextlib.contextmanager
-def repeat_pairs_only():
-    """Inside, ``Comparison.objects`` holds only the repeat pairs (two scans of one visit), chosen by the
-    database: the clinic's MDC (``analysis_step.clinic_mdc``, ``repeat_pairs``) then reads those, not every
-    comparison of the clinic, and says the same (it keeps the repeat pairs only)."""
-    token = _repeat_pairs_only.set(True)
-    try:
-        yield
-    finally:
-        _repeat_pairs_only.reset(token)
-
-
-class ComparisonManager(models.Manager):
-    def get_queryset(self):
-        qs = super().get_queryset()
-        if _repeat_pairs_only.get():
-            qs = qs.filter(earlier__session__visit_id=models.F("later__session__visit_id"))
-        return qs
-
-
 class Comparison(models.Model):
     """A later visit's torso against an earlier one (filled by the analysis)."""
-
-    objects = ComparisonManager()
 
     earlier = models.ForeignKey(Reconstruction, models.CASCADE, related_name="+")
     later = models.ForeignKey(Reconstruction, models.CASCADE, related_name="comparisons")

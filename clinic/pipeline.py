@@ -137,8 +137,8 @@ def send(task, *args) -> bool:
 def _entry_task(job: Job):
     from . import tasks
 
-    return {Job.CALIBRATION: tasks.run_calibration, Job.COMPARISON: tasks.run_comparison}.get(
-        job.kind, tasks.start_reconstruction)
+    return {Job.CALIBRATION: tasks.run_calibration, Job.COMPARISON: tasks.run_comparison,
+            Job.LANDMARKS: tasks.run_landmark_analysis}.get(job.kind, tasks.start_reconstruction)
 
 
 def dispatch(job: Job):
@@ -589,6 +589,71 @@ def run_comparison(job_id: int) -> str:
     return "succeeded"
 
 
+# --- a torso's landmarks corrected by a clinician ------------------------------------
+
+LANDMARKS_RUN_START = 10  # one step (indices and pictures, then the comparisons are queued)
+
+
+def request_landmark_analysis(rec: Reconstruction) -> Job:
+    """The job computing ``rec``'s indices and pictures again from its (just corrected) landmarks, sent.
+
+    Called after the landmarks were committed (the pages run in autocommit). A job of the same torso still
+    waiting is reused (two corrections in a row: the second's landmarks are what it reads). Without a
+    broker the job runs here, before this returns.
+    """
+    job = Job.objects.filter(kind=Job.LANDMARKS, later=rec, state=Job.QUEUED).first()
+    if job is None:
+        job = Job.objects.create(kind=Job.LANDMARKS, rig_id=rec.session.rig_id, session_id=rec.session_id,
+                                 later=rec, stage="waiting for a worker")
+    send(_entry_task(job), job.pk)
+    job.refresh_from_db()
+    return job
+
+
+def landmark_job_of(rec: Reconstruction):
+    """The latest landmark job of ``rec`` (what its visit page shows while it runs, or why it failed)."""
+    return Job.objects.filter(kind=Job.LANDMARKS, later=rec).order_by("-created").first()
+
+
+def run_landmark_analysis(job_id: int) -> str:
+    """Indices and pictures of a torso from its corrected landmarks; then the comparisons resting on it are
+    removed and queued again. If the indices cannot be computed from these landmarks, the correction is undone
+    (the landmarks before it come back) and the job fails saying so."""
+    from .analysis_step import analyse_reconstruction
+
+    claim = _now()
+    if not Job.objects.filter(Q(pk=job_id, kind=Job.LANDMARKS) & (Q(state=Job.QUEUED) | _lapsed())).update(
+            state=Job.RUNNING, stage="indices and pictures", percent=LANDMARKS_RUN_START, claimed=claim,
+            lease_until=_lease(), started=claim, attempt=F("attempt") + 1):
+        return "not claimed"
+    job = Job.objects.select_related("later__session").get(pk=job_id)
+    rec = job.later
+    try:
+        with heartbeat(Job.objects.filter(pk=job_id, claimed=claim)), transaction.atomic():
+            analyse_reconstruction(rec)
+            pairs = forget_comparisons_of(rec)
+    except TRANSIENT:
+        Job.objects.filter(pk=job_id, claimed=claim).update(state=Job.QUEUED, claimed=None, lease_until=None)
+        raise
+    except Exception as exc:
+        log.exception("torso %s: indices from the corrected landmarks %s failed", rec.pk, rec.landmarks)
+        history = list(rec.landmark_history or [])
+        if history:
+            last = history.pop()
+            Reconstruction.objects.filter(pk=rec.pk).update(landmarks=last.get("landmarks"),
+                                                            landmark_history=history)
+        fail(job_id, "the indices could not be computed from the corrected landmarks, so the correction was "
+                     f"undone: {_engine_error(exc)}", claimed=claim)
+        return "failed"
+    set_progress(job_id, "comparisons queued", 90)
+    for earlier, later in pairs:
+        request_comparison(earlier, later)
+    if not Job.objects.filter(pk=job_id, state=Job.RUNNING, claimed=claim).update(
+            state=Job.SUCCEEDED, stage="done", percent=100, finished=_now(), lease_until=None):
+        return "claim lost"
+    return "succeeded"
+
+
 def _forget_half_made_comparison(earlier_id: int, later_id: int):
     """The files an earlier attempt at this pair stored before it died (no comparison row names them yet)."""
     from .models import Comparison
@@ -661,7 +726,7 @@ def redispatch_stalled(older_than=None, now=None) -> list:
     for job in Job.objects.filter(state=Job.QUEUED, dispatched__lt=due):
         resend(Job.objects, job, _entry_task(job), job.pk)
     for job in Job.objects.filter(expired):
-        if job.kind in (Job.CALIBRATION, Job.COMPARISON):  # one step each: it starts again
+        if job.kind in (Job.CALIBRATION, Job.COMPARISON, Job.LANDMARKS):  # one step each: it starts again
             resend(Job.objects, job, _entry_task(job), job.pk)
         elif job.stage == "arms":  # died while starting, before the arms existed
             resend(Job.objects, job, tasks.start_reconstruction, job.pk)

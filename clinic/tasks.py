@@ -59,6 +59,12 @@ def run_comparison(job_id: int) -> str:
 
 
 @shared_task(**RETRY)
+def run_landmark_analysis(job_id: int) -> str:
+    """A torso's indices and pictures from its corrected landmarks (the visit page shows the progress)."""
+    return pipeline.run_landmark_analysis(job_id)
+
+
+@shared_task(**RETRY)
 def flag_rigs_for_recalibration() -> list:
     """Scheduled (Celery beat): rigs due for recalibration are flagged."""
     return pipeline.flag_rigs_for_recalibration()

@@ -24,6 +24,7 @@ urlpatterns = [
     path("comparisons/<int:pk>/report.pdf", report_views.comparison_report, name="comparison_report"),
     path("visits/<int:visit_id>/landmarks", views.correct_landmarks, name="correct_landmarks"),
     path("visits/<int:visit_id>/landmarks/undo", views.undo_landmarks, name="undo_landmarks"),
+    path("visits/<int:visit_id>/landmarks/pick", views.pick_landmark, name="pick_landmark"),
     path("rigs/<str:serial>/", views.rig, name="rig"),
     path("rigs/<str:serial>/keys", views.issue_rig_key, name="issue_rig_key"),
     path("rigs/<str:serial>/keys/<str:prefix>/revoke", views.revoke_rig_key, name="revoke_rig_key"),

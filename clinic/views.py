@@ -35,7 +35,7 @@ from django.views.decorators.http import require_http_methods, require_POST
 
 from . import api, labels, pipeline
 from .models import (CaptureSession, Comparison, Job, Member, Patient, Reconstruction, Rig, StabilityCheck, Visit,
-                     clinics_of, repeat_pairs_only)
+                     clinics_of)
 from .validation import MAX_NOTES
 
 # Who may do what. Actions the API has (re-running a job, issuing and revoking a rig's keys) are run through
@@ -192,18 +192,10 @@ def _repeat_comparisons(clinic):
     return Comparison.objects.filter(repeat=True, later__session__rig__clinic=clinic)
 
 
-def _from_repeat_pairs(compute):
-    """``compute(clinic)`` reading the clinic's repeat pairs only (see ``models.repeat_pairs_only``)."""
-    def run(clinic):
-        with repeat_pairs_only():
-            return compute(clinic)
-    return run
-
-
 def _mdc(clinic):
     from . import analysis_step
 
-    return _cached_by_repeat_state("mdc", clinic, _from_repeat_pairs(analysis_step.clinic_mdc))
+    return _cached_by_repeat_state("mdc", clinic, analysis_step.clinic_mdc)
 
 
 def _noise(clinic) -> dict:
@@ -212,7 +204,7 @@ def _noise(clinic) -> dict:
 
     from . import analysis_step
 
-    pairs = _cached_by_repeat_state("repeat-pairs", clinic, _from_repeat_pairs(analysis_step.repeat_pairs))
+    pairs = _cached_by_repeat_state("repeat-pairs", clinic, analysis_step.repeat_pairs)
     return {"pairs": pairs, "needed": MIN_REPEAT_PAIRS, "ready": pairs >= MIN_REPEAT_PAIRS}
 
 
@@ -557,9 +549,14 @@ def visit(request, visit_id):
     pairs = report.get("registration", {}).get("pairs", [])
     arms = {a: {"points": r.get("points"), "sigma": r.get("sigma_mm_median")} for a, r in report.get("arms", {}).items()}
     scans = [s for s in _scans(v.patient) if s.session.visit_id == v.pk]
+    landmark_job = pipeline.landmark_job_of(rec) if rec else None
+    recomputing = landmark_job is not None and landmark_job.state in (Job.QUEUED, Job.RUNNING)
     return render(request, "clinic/visit.html", {
         **_patient_context(v.patient, v.date),
-        "visit": v, "rec": rec, "jobs": jobs, "running": running, "pairs": pairs, "arms": arms,
+        "visit": v, "rec": rec, "jobs": jobs, "running": running or recomputing, "pairs": pairs, "arms": arms,
+        "landmark_job": landmark_job, "recomputing": recomputing,
+        "pick_src": reverse("picture", args=["reconstruction", rec.pk, f"torso-{PICK_VIEW}"])
+        if rec and f"torso-{PICK_VIEW}" in (rec.pictures or {}) and (rec.indices or {}).get("frame") else None,
         "quality": _quality(rec), "index_rows": _index_rows(rec.indices if rec else None),
         "not_measurable": _not_measurable(rec, "this scan") if rec else None,
         "pictures": _pictures("reconstruction", rec) if rec else [], "scans": scans,
@@ -618,27 +615,65 @@ def undo_landmarks(request, visit_id):
 
 
 def _apply_landmarks(request, v, rec, landmarks, history):
-    """Store the landmarks, compute the torso's indices and pictures again, and the comparisons resting on it
-    (as jobs: each page shows its progress); all stored or none."""
-    from .analysis_step import analyse_reconstruction
-
-    try:
-        with transaction.atomic():  # the correction and the indices computed from it, or neither
-            rec.landmarks = landmarks
-            rec.landmark_history = history
-            rec.save(update_fields=["landmarks", "landmark_history"])
-            analyse_reconstruction(rec)
-            pairs = pipeline.forget_comparisons_of(rec)
-    except Exception:
-        log.exception("visit %s: the indices could not be computed from corrected landmarks %s", v.pk, landmarks)
-        return _refused(request, "The indices could not be computed from these landmarks; the correction was "
-                                 "not saved.", 500, back=reverse("visit", args=[v.pk]))
-    for earlier, later in pairs:  # committed: a worker may take them (in the embedded default they run here)
-        pipeline.request_comparison(earlier, later)
-    if pairs:
-        messages.info(request, f"The indices were computed again; {len(pairs)} comparison(s) with this scan are "
-                               "being computed again.")
+    """Store the landmarks (with who changed what, for undo), then compute the torso's indices and pictures again
+    as a job (the visit page shows its progress; in the embedded default it runs here); the comparisons resting
+    on the torso are queued again by it. If the indices cannot be computed from these landmarks, the job puts
+    the previous ones back and says so on the visit page."""
+    with transaction.atomic():
+        rec.landmarks = landmarks
+        rec.landmark_history = history
+        rec.save(update_fields=["landmarks", "landmark_history"])
+    job = pipeline.request_landmark_analysis(rec)  # committed: a worker may take it
+    if job.state == Job.SUCCEEDED:
+        messages.info(request, "The indices and pictures were computed again from the corrected landmarks; the "
+                               "comparisons with this scan are being computed again.")
+    elif job.state != Job.FAILED:
+        messages.info(request, "The indices and pictures are being computed again from the corrected landmarks.")
     return redirect("visit", visit_id=v.pk)
+
+
+PICK_VIEW = "back"  # the picture a landmark is placed on (torso_views' back view, its default size)
+
+
+@login_required
+@require_POST
+def pick_landmark(request, visit_id):
+    """A landmark placed by clicking on the back picture: the skin point drawn under the click becomes it."""
+    from analysis.frame import PatientFrame
+    from analysis.indices import LANDMARKS
+    from analysis.pictures import pick_point
+
+    from .analysis_step import local_copy, stored
+
+    v = get_object_or_404(Visit.objects.filter(patient__clinic__in=clinics_of(request.user)), pk=visit_id)
+    _require_role(request, v.patient.clinic_id, CORRECT_LANDMARKS)
+    rec = _best(v)
+    if rec is None or not (rec.indices or {}).get("frame"):
+        raise Http404("this visit has no analysed torso yet")
+    back = reverse("visit", args=[v.pk]) + "#pick"
+    name = request.POST.get("landmark", "")
+    if name not in LANDMARKS:
+        return _refused(request, f"landmark: choose one of {', '.join(n.replace('_', ' ') for n in LANDMARKS)} "
+                                 f"before clicking (got {name[:40]!r})", 400, back=back)
+    try:
+        x, y = float(request.POST["at.x"]), float(request.POST["at.y"])
+    except (KeyError, ValueError):
+        return _refused(request, "at: click on the back picture to place the landmark (no position was sent)",
+                        400, back=back)
+    if not (math.isfinite(x) and math.isfinite(y)):
+        return _refused(request, "at: the position clicked is not a number", 400, back=back)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        mesh = local_copy(rec.mesh, tmp / "torso-mesh.ply") if stored(rec.mesh) else None
+        point = pick_point(local_copy(rec.torso, tmp / "torso.ply"), PatientFrame.from_dict(rec.indices["frame"]),
+                           PICK_VIEW, x, y, mesh=mesh)
+    if point is None:
+        return _refused(request, f"at: there is no skin at ({x:.0f}, {y:.0f}) on the picture; click on the back",
+                        400, back=back)
+    landmarks = {**(rec.landmarks or {}), name: [round(float(c), 1) for c in point]}
+    history = [*(rec.landmark_history or []), {"landmarks": rec.landmarks, "by": request.user.get_username(),
+                                                 "at": timezone.now().isoformat(timespec="seconds")}]
+    return _apply_landmarks(request, v, rec, landmarks, history[-LANDMARK_HISTORY:])
 
 
 @login_required
