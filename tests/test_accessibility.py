@@ -21,7 +21,7 @@ WIDTHS = (1280, 390)
 SERIOUS = ("serious", "critical")
 
 
-def _axe(page) -> list[dict]:
+def axe_violations(page) -> list[dict]:
     """axe's violations on the page as it is now (the vendored copy, injected as a file: no network).
 
     The pages' Content-Security-Policy allows no inline script, so the pages are opened with ``bypass_csp``.
@@ -48,7 +48,7 @@ def _check(page, name, found):
     page.wait_for_load_state("load")
     for width in WIDTHS:
         page.set_viewport_size({"width": width, "height": 900})
-        for v in _axe(page):
+        for v in axe_violations(page):
             found.append({**v, "page": name, "width": width, "url": page.url})
 
 
