@@ -24,7 +24,7 @@ test: $(STAMP)
 
 venv: $(STAMP)
 
-# System libraries that open3d (libusb) and headless pyvista (EGL) load; Chromium for the browser test;
+# System libraries that open3d loads (libusb; its rendering module, GL/EGL); Chromium for the browser test;
 # nginx for the slow-client test (the compose file's front door).
 sysdeps:
 	@missing=""; for p in $(SYSDEPS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \

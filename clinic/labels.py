@@ -121,14 +121,17 @@ GROWTH_FIGURES = (("trunk_length_mm", "Trunk length C7 – sacral point"), ("hei
 
 # pictures of a torso or a comparison: title and what a screen reader should say
 PICTURES = {
-    "torso-back": ("Back view", "Shaded 3D surface of the torso seen from behind, patient's left and right marked L and R"),
+    "torso-back": ("Back view", "Shaded 3D surface of the torso seen from behind, with the vertebra prominens (VP), "
+                                "the sacral point (SP) and the line of symmetry drawn; patient's left and right "
+                                "marked L and R"),
     "torso-front": ("Front view", "Shaded 3D surface of the torso seen from the front, L and R marked"),
-    "torso-side": ("Side view", "Shaded 3D surface of the torso seen from the side"),
+    "torso-side": ("Side view", "Shaded 3D surface of the torso seen from the patient's right side"),
     "torso-top": ("Top view", "Shaded 3D surface of the torso seen from above"),
-    "asymmetry": ("Asymmetry map", "Colour map of the back against its mirror image: where one side stands out "
-                                   "from the other, in mm"),
-    "deformation": ("Deformation map", "Colour map of the change of the surface between the two scans: red "
-                                       "outward, blue inward, in mm"),
+    "asymmetry": ("Asymmetry map", "Colour map of the back against its mirror image on a fixed scale of ±15 mm: "
+                                   "where one side stands out from the other"),
+    "deformation": ("Deformation map", "Colour map of the change of the surface between the two scans on a fixed "
+                                       "scale of ±10 mm (outward +, inward −); light grey: within the scanner's "
+                                       "noise; dark grey: arms, neck and head, not compared"),
 }
 
 

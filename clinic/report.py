@@ -474,9 +474,10 @@ def comparison_sheets(request, comp) -> Sheets:
     if deformation is None:
         sheets.para("The deformation map of these two scans has not been drawn.", 8.5, color=MUTED)
     sheets.images([deformation], max_h=330, min_h=200,
-                  caption="How the surface moved from the earlier scan to the later one, in mm, with the colour "
-                          "scale on the map (red: outward, blue: inward), after lining the two up on the parts "
-                          "that did not change.")
+                  caption="How the surface moved from the earlier scan to the later one, in mm, on a fixed "
+                          "scale of ±10 mm (red: outward, blue: inward), after lining the two up on the parts "
+                          "that did not change. Light grey: within the scanner's noise; dark grey: arms, neck "
+                          "and head, not compared.")
 
     sheets.heading("Indices")
     rows = views.comparison_index_rows(comp, mdc)
