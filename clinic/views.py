@@ -361,10 +361,12 @@ def _quality(rec) -> dict:
             worse(2, f"only {100 * m:.0f} % of the overlap of {name} matched")
         elif m is not None and m < OVERLAP_MATCHED[0]:
             worse(1, f"{100 * m:.0f} % of the overlap of {name} matched")
+    from analysis.indices import CORE_LANDMARKS
+
     ind = rec.indices or {}
     for name, lm in (ind.get("landmarks") or {}).items():
-        if name.startswith("dimple"):
-            continue  # the body's, not the scan's: only the pelvic figures wait for them (the page asks apart)
+        if name not in CORE_LANDMARKS:
+            continue  # the dimples are the body's, not the scan's: only the pelvic figures wait for them
         conf = lm.get("confidence")
         if conf not in (None, "high", "clinician"):
             worse(1, f"the {labels.landmark(name)} was placed with {conf} confidence: check it or mark it")
