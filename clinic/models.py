@@ -417,7 +417,10 @@ class AuditEvent(models.Model):
     user = models.ForeignKey(settings.AUTH_USER_MODEL, models.SET_NULL, null=True, blank=True, related_name="+")
     username = models.CharField(max_length=150, blank=True, db_index=True)
     rig_serial = models.CharField(max_length=64, blank=True, help_text="The rig whose key made the request")
-    clinic = models.ForeignKey(Clinic, models.SET_NULL, null=True, blank=True, related_name="+")
+    # no database constraint: the trail keeps the clinic's id after the clinic is deleted (as it keeps the
+    # patient's), and the deletion's own events (written while it cascades) may name it
+    clinic = models.ForeignKey(Clinic, models.DO_NOTHING, null=True, blank=True, related_name="+",
+                               db_constraint=False)
     patient_id = models.BigIntegerField(null=True, blank=True, db_index=True)
     action = models.CharField(max_length=16, choices=ACTIONS)
     object_type = models.CharField(max_length=40, blank=True)

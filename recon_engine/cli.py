@@ -103,7 +103,7 @@ DESCRIPTION = "The torsoscan command line: thin commands that call the engine's 
 def add_commands(sub) -> None:
     """Add the engine's commands to ``sub`` (an ``argparse`` subparsers action); each sets ``func``."""
     p = sub.add_parser("simulate", help="render a complete simulated scenario with its ground truth")
-    p.add_argument("--preset", choices=["tiny", "paper"], default="tiny",
+    p.add_argument("--preset", choices=["tiny", "demo", "paper"], default="tiny",
                    help="tiny: 480x320 px images for tests; paper: the paper's 3000x2000 px rig")
     p.add_argument("--out", required=True, help="scenario folder to write")
     p.add_argument("--seed", type=int, default=0, help="the installation: rig, lenses, test field, patient")

@@ -172,8 +172,13 @@ def engine_lens(cfg: ScenarioConfig) -> ScenarioConfig:
     return replace(cfg, camera=replace(cfg.camera, **{k: 0.0 for k in LENS_EXTRAS}))
 
 
+# reduced rigs: camera width x height (px) and the projector's (px), both about the paper's times width / 3000
+REDUCED = {"tiny": (480, 320, (168, 126)),  # the tests: a whole scenario in seconds
+           "demo": (720, 480, (252, 189))}  # make demo: denser torsos (about 3 mm between points) in minutes
+
+
 def preset(name: str, **overrides) -> ScenarioConfig:
-    """A named preset: ``"paper"`` (the paper's rig at full resolution) or ``"tiny"``.
+    """A named preset: ``"paper"`` (the paper's rig at full resolution), ``"tiny"`` or ``"demo"``.
 
     ``tiny`` keeps the geometry, the optics and the noise of ``paper`` but images
     of 480 x 320 px, with the pattern and blur scaled so that the projected
@@ -182,17 +187,18 @@ def preset(name: str, **overrides) -> ScenarioConfig:
     """
     if name == "paper":
         cfg = ScenarioConfig(preset="paper")
-    elif name == "tiny":
-        scale = 480 / 3000
+    elif name in REDUCED:
+        width, height, projector = REDUCED[name]
+        scale = width / 3000
         cam = CameraConfig(
-            width=480, height=320, pixel_size_mm=0.0047 / scale,
+            width=width, height=height, pixel_size_mm=0.0047 / scale,
             principal_point_sigma_px=15.0 * scale,
         )
-        proj = ProjectorConfig(width=168, height=126)
+        proj = ProjectorConfig(width=projector[0], height=projector[1])
         # markers large enough to be read at 2 mm per pixel
         tf = TestFieldConfig(poses=3, columns=3, rows=6, marker_mm=70.0, gap_mm=30.0)
-        cfg = ScenarioConfig(preset="tiny", camera=cam, projector=proj, testfield=tf,
+        cfg = ScenarioConfig(preset=name, camera=cam, projector=proj, testfield=tf,
                              captures=(("visit0-a", 0),))
     else:
-        raise ValueError(f"unknown preset {name!r}: choose 'tiny' or 'paper'")
+        raise ValueError(f"unknown preset {name!r}: choose {', '.join(['paper', *REDUCED])}")
     return replace(cfg, **overrides) if overrides else cfg

@@ -1,6 +1,6 @@
 """What a clinic does, on the embedded default: ``python manage.py demo``.
 
-A reduced rig (the simulator's ``tiny`` preset) is registered and calibrated
+A reduced rig (the simulator's ``demo`` preset, or ``tiny``) is registered and calibrated
 from simulated test-field captures; a patient gets a baseline visit, a
 same-day re-scan and a visit four months later with progression. Everything
 goes through the HTTP API (Django's in-process client) and runs as jobs
@@ -15,9 +15,13 @@ from pathlib import Path
 
 from django.contrib.auth.models import User
 from django.core.management.base import BaseCommand, CommandError
+from django.core.files.storage import default_storage
 from django.db import transaction
+from django.db.models import Q
 from django.test import Client
 
+from analysis.repeatability import flatten
+from clinic import labels, records
 from clinic.models import Clinic, Comparison, Job, Member, Patient, Reconstruction, Rig
 
 DEMO_CLINIC = "Demo Scoliosis Clinic"
@@ -31,9 +35,31 @@ class Command(BaseCommand):
         parser.add_argument("--out", default="demo-out", help="where the simulated scenario is written")
         parser.add_argument("--seed", type=int, default=0)
         parser.add_argument("--reuse", action="store_true", help="reuse a scenario already simulated in --out")
+        parser.add_argument("--preset", default="demo", choices=["tiny", "demo"],
+                            help="the simulated rig: 'demo' (720 x 480 px cameras, about 3 mm between torso points; "
+                                 "a few minutes) or 'tiny' (the tests' 480 x 320 px; sparse torsos, faster)")
 
     def say(self, msg):
         self.stdout.write(msg)
+
+    def mark_what_was_not_found(self, client, rec, truth: Path, visit_id: int):
+        """As a clinician would: the trunk's landmarks the analysis could not find with confidence are marked on
+        the visit page (here at the simulator's true positions), and the indices are computed again."""
+        from analysis.indices import CORE_LANDMARKS
+
+        mark = [n for n in ((rec.indices or {}).get("not_measurable") or {}).get("mark", []) if n in CORE_LANDMARKS]
+        if not mark:
+            return rec
+        true = json.loads((truth / "truth.json").read_text())["landmarks"]
+        fields = {n: " ".join(f"{c:.1f}" for c in true[n]) for n in mark if n in true}
+        r = client.post(f"/visits/{visit_id}/landmarks", fields)
+        if r.status_code != 302:
+            raise CommandError(f"marking {', '.join(fields)} failed: {r.status_code} {r.content[:300]!r}")
+        self.say(f"  the {' and the '.join(labels.landmark(n) for n in fields)} could not be found with confidence: "
+                 "a clinician marks it on the visit page (here at the simulator's true position), and the "
+                 "indices are computed again")
+        rec.refresh_from_db()
+        return rec
         self.stdout.flush()
 
     def api(self, client, method, path, key=None, expect=(200, 201), **kw):
@@ -53,8 +79,8 @@ class Command(BaseCommand):
                      data=(folder / im["file"]).read_bytes(), content_type="application/octet-stream")
         return self.api(client, "post", f"/api/sessions/{s['id']}/finalize", key)
 
-    def handle(self, *args, out, seed, reuse, **kw):
-        from recon_engine.simulator.config import preset
+    def handle(self, *args, out, seed, reuse, preset="demo", **kw):
+        from recon_engine.simulator.config import preset as scenario_preset
         from recon_engine.simulator.scenario import simulate
 
         t0 = time.perf_counter()
@@ -63,16 +89,21 @@ class Command(BaseCommand):
             self.say(f"simulating a reduced rig and a patient with a scoliotic curve into {scenario} ...")
             if scenario.exists():
                 shutil.rmtree(scenario)
-            cfg = preset("tiny", seed=seed, captures=(("visit0-a", 0), ("visit0-b", 0), ("visit1-a", 1)))
+            cfg = scenario_preset(preset, seed=seed, captures=(("visit0-a", 0), ("visit0-b", 0), ("visit1-a", 1)))
             simulate(scenario, cfg, progress=lambda m: None)
             self.say(f"  simulated in {time.perf_counter() - t0:.0f} s")
 
+        named_before = records.all_stored_names()
         with transaction.atomic():  # a fresh demo clinic each run; other clinics are left alone
-            for c in Clinic.objects.filter(name=DEMO_CLINIC):
-                Rig.objects.filter(clinic=c).delete()
-                c.delete()
             rig_serial = json.loads((scenario / "rig.json").read_text())["serial"]
-            Rig.objects.filter(serial=rig_serial).delete()
+            rigs = Rig.objects.filter(Q(clinic__name=DEMO_CLINIC) | Q(serial=rig_serial))
+            # jobs first: a job holds on to the calibration it used (protected), which goes with its rig
+            Job.objects.filter(rig__in=rigs).delete()
+            rigs.delete()
+            Clinic.objects.filter(name=DEMO_CLINIC).delete()
+            # the last run's files go once the rows that named them are gone
+            transaction.on_commit(lambda: [default_storage.delete(n)
+                                           for n in named_before - records.all_stored_names()])
             clinic = Clinic.objects.create(name=DEMO_CLINIC)
             user = User.objects.filter(username=DEMO_USER).first() or User.objects.create_user(DEMO_USER)
             user.set_password(DEMO_PASSWORD)
@@ -119,7 +150,7 @@ class Command(BaseCommand):
             if job.state != Job.SUCCEEDED:
                 self.say(self.style.WARNING(f"  job {job.state}: {job.error}"))
                 continue
-            rec = job.reconstruction
+            rec = self.mark_what_was_not_found(client, job.reconstruction, scenario / "truth" / name, visit["id"])
             pairs = ", ".join(f"{p['a']}-{p['b']} {p['average_normal_distance_mm']:.3f} mm "
                               f"({p['overlap_matched_fraction']:.0%} of the overlap)"
                               for p in rec.report["registration"]["pairs"]
@@ -127,10 +158,11 @@ class Command(BaseCommand):
             ind = rec.indices or {}
             self.say(f"  torso: {rec.points} points, status {rec.status}; registration {pairs}")
             if ind:
-                self.say(f"  indices: surface rotation max {ind['surface_rotation_deg']['max']:+.1f} deg, "
-                         f"lateral deviation max {ind['lateral_deviation_mm']['max']:+.1f} mm, "
-                         f"hump {ind['hump_mm']:.1f} mm, trunk imbalance {ind['trunk_imbalance_mm']:+.1f} mm, "
-                         f"asymmetry {ind['asymmetry_mm']:.1f} mm")
+                flat = flatten(ind)
+                self.say("  indices: " + "; ".join(
+                    f"{labels.label(k)} {labels.size_words(k, flat[k]) if k in flat else 'not measurable'}"
+                    for k in ("surface_rotation_deg.max", "lateral_deviation_mm.max", "hump_mm",
+                              "trunk_imbalance_mm", "asymmetry_mm")))
 
         from analysis.repeatability import index_changes
 
@@ -142,8 +174,9 @@ class Command(BaseCommand):
 
         from clinic.analysis_step import repeat_pairs
 
-        self.say("  (the demo's reduced rig gives sparse torsos, about 5 mm between points: the figures show the\n"
-                 "   workflow, not the scanner's accuracy; see docs/analysis.md for the paper-scale validation)")
+        self.say(f"  (the demo's reduced rig ({preset} preset) gives torsos {'about 3' if preset == 'demo' else 'about 5'} "
+                 "mm between points, sparser than the paper-scale rig's: the figures show\n   the workflow, not the "
+                 "scanner's accuracy; see docs/analysis.md for the paper-scale validation)")
         pairs = repeat_pairs(clinic)
         if pairs < MIN_REPEAT_PAIRS:
             self.say(f"  this clinic has {pairs} of the {MIN_REPEAT_PAIRS} same-visit re-scans its own noise verdicts "
@@ -153,18 +186,19 @@ class Command(BaseCommand):
             kind = "same-visit re-scan (repeatability)" if comp.is_repeat else "follow-up against baseline"
             self.say(f"  {kind}: average normal distance {r['average_normal_distance_mm']:.2f} mm, "
                      f"{r['matched_fraction']:.0%} matched, signed mean {r['signed_distance_mm']['mean']:+.2f} mm")
-            if comp.is_repeat:
-                continue
             changes = index_changes(comp.earlier.indices or {}, comp.later.indices or {}, mdc,
                                     sides_agree=(r.get("facing") or {}).get("consistent", True))
-            for k in ("surface_rotation_deg.max", "lateral_deviation_mm.max", "spine_lateral_deviation_mm.max", "hump_mm",
-                      "asymmetry_mm"):
+            for k in ("surface_rotation_deg.max", "lateral_deviation_mm.max", "spine_lateral_deviation_mm.max",
+                      "hump_mm", "asymmetry_mm"):
                 c = changes.get(k)
                 if c:
-                    flag = ("BEYOND the MDC" if c["exceeds_mdc"] else
-                            "within the MDC" if c["exceeds_mdc"] is False else "no verdict yet")
-                    self.say(f"    {k}: {c['earlier']:+.1f} -> {c['later']:+.1f} (change {c['change']:+.1f}, "
-                             f"MDC {c['mdc'] if c['mdc'] is None else round(c['mdc'], 2)}): {flag}")
+                    flag = ("BEYOND the scanner's noise" if c["exceeds_mdc"] else
+                            "within the scanner's noise" if c["exceeds_mdc"] is False else "no verdict yet")
+                    unit = labels.unit(k)
+                    noise = "" if c["mdc"] is None else f", noise ±{c['mdc']:.1f}{'' if unit == '°' else ' '}{unit}"
+                    self.say(f"    {labels.label(k)}: {labels.size_words(k, c['earlier'])} -> "
+                             f"{labels.size_words(k, c['later'])} ({labels.change_words(k, c['earlier'], c['later'])}"
+                             f"{noise}): {flag}")
         n = Reconstruction.objects.filter(session__visit__patient_id=patient["id"]).count()
         self.say(f"\n{n} torsos reconstructed in {time.perf_counter() - t0:.0f} s in all.")
         self.say("Open the clinicians' pages:\n"
