@@ -3,8 +3,8 @@ today's patient on the worklist, open the history and read the headline, compare
 follow-up, place a landmark by clicking on the back picture, download the visit's report; axe-core on every page (no serious violation).
 
 Playwright on the machine's Chromium, as tests/test_browser_comparison.py. Screenshots of every step at both
-widths go to a temporary folder, or to docs/screenshots/clinic-day/ with SAVE_SCREENSHOTS=1 (docs/accessibility.md
-names the folder).
+widths go to docs/screenshots/clinic-day/ with SAVE_SCREENSHOTS=1, the folder docs/accessibility.md names (none
+otherwise: full-page screenshots cost seconds each).
 """
 
 import datetime
@@ -64,7 +64,7 @@ def _pixel_above_sacral_point(rec, mm: float):
 
 
 @pytest.mark.django_db(transaction=True)
-def test_a_clinician_goes_through_the_clinic_day_at_both_widths(live_server, patient_seen_today, tmp_path):
+def test_a_clinician_goes_through_the_clinic_day_at_both_widths(live_server, patient_seen_today):
     chromium_or_skip()
     from playwright.sync_api import sync_playwright
 
@@ -79,8 +79,9 @@ def test_a_clinician_goes_through_the_clinic_day_at_both_widths(live_server, pat
     with sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox", "--headless=new"])
         for width in (1280, 390):
-            out = SHOTS / str(width) if os.environ.get("SAVE_SCREENSHOTS") else tmp_path / str(width)
-            out.mkdir(parents=True, exist_ok=True)
+            out = SHOTS / str(width) if os.environ.get("SAVE_SCREENSHOTS") else None  # full-page shots cost seconds
+            if out is not None:
+                out.mkdir(parents=True, exist_ok=True)
             page = browser.new_page(viewport={"width": width, "height": 900}, bypass_csp=True, accept_downloads=True)
 
             def step(name):
@@ -89,7 +90,8 @@ def test_a_clinician_goes_through_the_clinic_day_at_both_widths(live_server, pat
                 assert scroll <= inner, f"{name} scrolls sideways at {width} px"
                 serious.extend(f"{v['id']} on {name} at {width} px: {v['targets']}" for v in axe_violations(page)
                                if v["impact"] in SERIOUS)
-                page.screenshot(path=str(out / f"{name}.png"), full_page=True)
+                if out is not None:
+                    page.screenshot(path=str(out / f"{name}.png"), full_page=True)
 
             page.goto(f"{base}/accounts/login/")
             step("01-sign-in")
