@@ -573,9 +573,7 @@ def visit(request, visit_id):
 def correct_landmarks(request, visit_id):
     """A clinician moves the vertebra prominens, the sacral point or a lumbar dimple; the indices, pictures and
     comparisons resting on them are computed again; who changed what is kept for undo."""
-    v = get_object_or_404(Visit.objects.filter(patient__clinic__in=clinics_of(request.user)), pk=visit_id)
-    _require_role(request, v.patient.clinic_id, CORRECT_LANDMARKS)
-    rec = _best(v)
+    v, rec = _torso_to_correct(request, visit_id)
     if rec is None:
         raise Http404("this visit has no torso yet")
     landmarks = {}  # every landmark is checked before any is stored
@@ -594,21 +592,32 @@ def correct_landmarks(request, visit_id):
                     "message": f"{name.replace('_', ' ')}: give three numbers x y z in mm (each within "
                                f"±{LANDMARK_LIMIT_MM:g} mm), got {raw[:80]!r}"}, status=400)
             landmarks[name] = xyz
-    history = [*(rec.landmark_history or []), {"landmarks": rec.landmarks, "by": request.user.get_username(),
-                                                 "at": timezone.now().isoformat(timespec="seconds")}]
-    return _apply_landmarks(request, v, rec, landmarks or None, history[-LANDMARK_HISTORY:])
+    return _apply_landmarks(request, v, rec, landmarks or None, _history_after(request, rec))
 
 
 LANDMARK_HISTORY = 20  # corrections a torso keeps for undo
+
+
+def _torso_to_correct(request, visit_id):
+    """``(visit, its best torso or None)`` for a landmark correction: 404 outside the user's clinics, 403 for a
+    role that may not correct landmarks."""
+    v = get_object_or_404(Visit.objects.filter(patient__clinic__in=clinics_of(request.user)), pk=visit_id)
+    _require_role(request, v.patient.clinic_id, CORRECT_LANDMARKS)
+    return v, _best(v)
+
+
+def _history_after(request, rec) -> list:
+    """The torso's correction history with the landmarks a correction now replaces (who, when), for undo."""
+    entry = {"landmarks": rec.landmarks, "by": request.user.get_username(),
+             "at": timezone.now().isoformat(timespec="seconds")}
+    return [*(rec.landmark_history or []), entry][-LANDMARK_HISTORY:]
 
 
 @login_required
 @require_POST
 def undo_landmarks(request, visit_id):
     """The last landmark correction undone: the landmarks before it come back, and everything is computed again."""
-    v = get_object_or_404(Visit.objects.filter(patient__clinic__in=clinics_of(request.user)), pk=visit_id)
-    _require_role(request, v.patient.clinic_id, CORRECT_LANDMARKS)
-    rec = _best(v)
+    v, rec = _torso_to_correct(request, visit_id)
     if rec is None or not rec.landmark_history:
         raise Http404("no landmark correction to undo")
     history = list(rec.landmark_history)
@@ -647,9 +656,7 @@ def pick_landmark(request, visit_id):
 
     from .analysis_step import local_copy, stored
 
-    v = get_object_or_404(Visit.objects.filter(patient__clinic__in=clinics_of(request.user)), pk=visit_id)
-    _require_role(request, v.patient.clinic_id, CORRECT_LANDMARKS)
-    rec = _best(v)
+    v, rec = _torso_to_correct(request, visit_id)
     if rec is None or not (rec.indices or {}).get("frame"):
         raise Http404("this visit has no analysed torso yet")
     back = reverse("visit", args=[v.pk]) + "#pick"
@@ -673,9 +680,7 @@ def pick_landmark(request, visit_id):
         return _refused(request, f"at: there is no skin at ({x:.0f}, {y:.0f}) on the picture; click on the back",
                         400, back=back)
     landmarks = {**(rec.landmarks or {}), name: [round(float(c), 1) for c in point]}
-    history = [*(rec.landmark_history or []), {"landmarks": rec.landmarks, "by": request.user.get_username(),
-                                                 "at": timezone.now().isoformat(timespec="seconds")}]
-    return _apply_landmarks(request, v, rec, landmarks, history[-LANDMARK_HISTORY:])
+    return _apply_landmarks(request, v, rec, landmarks, _history_after(request, rec))
 
 
 @login_required
