@@ -19,22 +19,11 @@ import textwrap
 from django.core.files.storage import default_storage
 from django.utils import timezone
 
-from . import labels, views
-
-# --- the pages' helpers, under public names -------------------------------------------------------------------------
-# clinic/views.py keeps these private for now; the report calls them (rather than re-deriving a verdict) so that
-# paper and screen never disagree. If views.py makes them public, these lines become plain imports.
-best_scan = views._best
-scans_of = views._scans
-clinic_mdc = views._mdc
-noise_state = views._noise
-patient_context = views._patient_context
-scan_quality = views._quality
-verdict_of = views._verdict
-headline_of = views._headline
-index_rows_of = views._index_rows
-not_measurable_of = views._not_measurable
-span_words = views._span
+from . import labels
+# the pages' own helpers: the report calls them (rather than re-deriving a verdict) so that paper and screen never
+# disagree
+from .views import (best_of_visits, best_scan, cached_mdc, comparison_index_rows, headline_of, index_rows_of,
+                    noise_state, not_measurable_of, patient_context, scan_quality, scans_of, span_words, verdict_of)
 
 MAX_PAGES = 2
 TREND_MIN_H = 130.0  # points: the trend drawn smaller than this is not worth its room
@@ -320,7 +309,7 @@ def trend_png(patient, until=None) -> bytes | None:
     series = [(v.date, rec.indices) for v in visits if (rec := best_scan(v)) and rec.indices]
     if not series:
         return None
-    mdc = {k: v["mdc"] for k, v in clinic_mdc(patient.clinic).items()}
+    mdc = {k: v["mdc"] for k, v in cached_mdc(patient.clinic).items()}
     figures = [(k, labels.label(k) + (f" ({labels.unit(k)})" if labels.unit(k) else ""))
                for k, _ in pictures.TREND_FIGURES]
     with tempfile.TemporaryDirectory() as tmp:
@@ -455,7 +444,7 @@ def comparison_sheets(request, comp) -> Sheets:
     e_date, l_date = earlier.session.visit.date, later.session.visit.date
     repeat = comp.is_repeat
     ctx = patient_context(p, l_date)
-    mdc, noise = clinic_mdc(clinic), noise_state(clinic)
+    mdc, noise = cached_mdc(clinic), noise_state(clinic)
     facing = comp.report.get("facing") or {}
     verdict = verdict_of(clinic, earlier, later, "Same-day re-scan" if repeat else "Between these scans", mdc, noise,
                          sides_agree=facing.get("consistent", True), growth=comp.report.get("growth"))
@@ -480,7 +469,7 @@ def comparison_sheets(request, comp) -> Sheets:
                           "and head, not compared.")
 
     sheets.heading("Indices")
-    rows = views.comparison_index_rows(comp, mdc)
+    rows = comparison_index_rows(comp, mdc)
     sheets.table([("Index", 0.30, "left"), (_date(e_date), 0.18, "left"), (_date(l_date), 0.18, "left"),
                   ("Change", 0.10, "right"), ("Scanner noise (MDC)", 0.10, "right"), ("Verdict", 0.14, "left")],
                  [[(_label(r), INK, True), r["earlier"], r["later"], r["change"], _mdc_words(r["mdc"]),
@@ -494,7 +483,7 @@ def visit_sheets(request, visit) -> Sheets:
     clinic = p.clinic
     rec = best_scan(visit)
     ctx = patient_context(p, visit.date)
-    mdc, noise = clinic_mdc(clinic), noise_state(clinic)
+    mdc, noise = cached_mdc(clinic), noise_state(clinic)
     sub = [f"Visit of {_date(visit.date)}"]
     if visit.reason:
         sub.append(visit.reason)

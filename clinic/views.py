@@ -113,7 +113,7 @@ def _good_recs():
     return Reconstruction.objects.filter(status__in=["ok", "partial"], job__state=Job.SUCCEEDED)
 
 
-def _best(visit):
+def best_scan(visit):
     """The visit's torso shown to clinicians: its latest good reconstruction (or None)."""
     return _good_recs().filter(session__visit=visit).order_by("-created").first()
 
@@ -123,7 +123,7 @@ def _scan_jobs(visit):
     return Job.objects.filter(session__visit=visit).exclude(kind=Job.COMPARISON).order_by("-created")
 
 
-def _scans(patient) -> list:
+def scans_of(patient) -> list:
     """Every good reconstruction of the patient in time order, each with a label a clinician can choose by."""
     recs = list(_good_recs().filter(session__visit__patient=patient).select_related("session__visit")
                 .order_by("session__visit__date", "session__visit_id", "created", "pk"))
@@ -138,9 +138,9 @@ def _scans(patient) -> list:
     return recs
 
 
-def _best_of_visits(scans) -> dict:
-    """Each visit's torso shown to clinicians (as :func:`_best`: its latest good reconstruction), from the
-    patient's :func:`_scans`, by visit id: one query for a whole history."""
+def best_of_visits(scans) -> dict:
+    """Each visit's torso shown to clinicians (as :func:`best_scan`: its latest good reconstruction), from the
+    patient's :func:`scans_of`, by visit id: one query for a whole history."""
     best = {}
     for r in scans:  # in time order within each visit
         cur = best.get(r.session.visit_id)
@@ -192,13 +192,13 @@ def _repeat_comparisons(clinic):
     return Comparison.objects.filter(repeat=True, later__session__rig__clinic=clinic)
 
 
-def _mdc(clinic):
+def cached_mdc(clinic):
     from . import analysis_step
 
     return _cached_by_repeat_state("mdc", clinic, analysis_step.clinic_mdc)
 
 
-def _noise(clinic) -> dict:
+def noise_state(clinic) -> dict:
     """What the noise verdicts rest on: the clinic's repeat pairs and how many are needed before any flag."""
     from analysis.repeatability import MIN_REPEAT_PAIRS
 
@@ -220,7 +220,7 @@ def _age(born, on) -> str | None:
     return f"{months // 12} y {months % 12} mo"
 
 
-def _span(earlier, later) -> str:
+def span_words(earlier, later) -> str:
     """The time between two dates in words."""
     days = (later - earlier).days
     if days <= 0:
@@ -233,7 +233,7 @@ def _span(earlier, later) -> str:
     return f"{months / 12:.1f} years"
 
 
-def _patient_context(p, on=None) -> dict:
+def patient_context(p, on=None) -> dict:
     """What names the patient on every page: name, identifier, date of birth, age (now and on ``on``)."""
     from django.utils import timezone
 
@@ -241,7 +241,7 @@ def _patient_context(p, on=None) -> dict:
             "age_then": _age(p.date_of_birth, on) if on else None, "age_on": on}
 
 
-def _not_measurable(rec, when: str) -> dict | None:
+def not_measurable_of(rec, when: str) -> dict | None:
     nm = (rec.indices or {}).get("not_measurable") if rec else None
     if not nm:
         return None
@@ -262,13 +262,13 @@ def _flat_keys_of(bases) -> list:
     return [k for k in labels.TABLE_KEYS if k.split(".")[0] in bases]
 
 
-def _verdict(clinic, earlier, later, title, mdc=None, noise=None, sides_agree=None, growth=None) -> dict:
+def verdict_of(clinic, earlier, later, title, mdc=None, noise=None, sides_agree=None, growth=None) -> dict:
     """The headline of two scans: what changed beyond the scanner's noise (by how much, where), what stayed
     within it, what cannot be judged yet and why, what is not measurable, and growth apart."""
     from analysis.repeatability import index_changes
 
-    mdc = _mdc(clinic) if mdc is None else mdc
-    noise = _noise(clinic) if noise is None else noise
+    mdc = cached_mdc(clinic) if mdc is None else mdc
+    noise = noise_state(clinic) if noise is None else noise
     comp = Comparison.objects.filter(earlier=earlier, later=later).first()
     if sides_agree is None:
         sides_agree = ((comp.report.get("facing") or {}).get("consistent", True)) if comp else True
@@ -277,11 +277,11 @@ def _verdict(clinic, earlier, later, title, mdc=None, noise=None, sides_agree=No
     changes = index_changes(earlier.indices or {}, later.indices or {}, mdc, sides_agree=sides_agree)
     out = {"title": title, "earlier": earlier, "later": later,
            "earlier_date": earlier.session.visit.date, "later_date": later.session.visit.date,
-           "span": _span(earlier.session.visit.date, later.session.visit.date),
+           "span": span_words(earlier.session.visit.date, later.session.visit.date),
            "repeat": earlier.session.visit_id == later.session.visit_id, "noise": noise,
            "beyond": [], "within": [], "unjudged": [], "growth": [], "sides_agree": sides_agree,
-           "not_measurable": [x for x in (_not_measurable(earlier, f"the scan of {earlier.session.visit.date}"),
-                                          _not_measurable(later, f"the scan of {later.session.visit.date}")) if x]}
+           "not_measurable": [x for x in (not_measurable_of(earlier, f"the scan of {earlier.session.visit.date}"),
+                                          not_measurable_of(later, f"the scan of {later.session.visit.date}")) if x]}
     for key in labels.HEADLINE_KEYS + labels.GROWTH_KEYS:
         c = changes.get(key)
         if c is None:
@@ -314,15 +314,15 @@ def _verdict(clinic, earlier, later, title, mdc=None, noise=None, sides_agree=No
     return out
 
 
-def _headline(p, scans_by_visit, mdc, noise) -> list:
+def headline_of(p, scans_by_visit, mdc, noise) -> list:
     """Since the baseline and since the last visit, for the patient's latest scan."""
     recs = [r for r in scans_by_visit if r is not None]
     if len(recs) < 2:
         return []
     base, prev, latest = recs[0], recs[-2], recs[-1]
-    out = [_verdict(p.clinic, base, latest, "Since the baseline", mdc, noise)]
+    out = [verdict_of(p.clinic, base, latest, "Since the baseline", mdc, noise)]
     if prev != base:
-        out.append(_verdict(p.clinic, prev, latest, "Since the last visit", mdc, noise))
+        out.append(verdict_of(p.clinic, prev, latest, "Since the last visit", mdc, noise))
     return out
 
 
@@ -331,7 +331,7 @@ PAIR_DISTANCE_MM = (0.5, 1.0)  # average normal distance between neighbouring ar
 OVERLAP_MATCHED = (0.9, 0.6)  # share of each overlap that registered (at least)
 
 
-def _quality(rec) -> dict:
+def scan_quality(rec) -> dict:
     """One verdict on a scan, in words: good, usable or repeat the scan, and why."""
     if rec is None:
         return {"verdict": "none", "words": "No torso yet", "reasons": []}
@@ -379,7 +379,7 @@ def _quality(rec) -> dict:
     return {"verdict": ("good", "usable", "repeat")[level], "words": words, "reasons": reasons}
 
 
-def _index_rows(indices) -> list:
+def index_rows_of(indices) -> list:
     """The visit page's indices: label, value with its side in words, where it is largest, meaning."""
     flat = _flat(indices)
     withheld = set(((indices or {}).get("not_measurable") or {}).get("indices") or [])
@@ -438,7 +438,7 @@ def _worklist(user, today) -> dict:
         overdue.append(row)
     overdue.sort(key=lambda r: (r["due_since"], r["name"]))
     for row in overdue[:WORKLIST_LIMIT]:
-        row["late"] = _span(row["due_since"], today)
+        row["late"] = span_words(row["due_since"], today)
     return {"today": today, "visits_today": visits_today, "overdue": overdue[:WORKLIST_LIMIT],
             "overdue_count": len(overdue), "follow_up_months": months}
 
@@ -472,16 +472,16 @@ def patients(request):
 def patient(request, patient_id):
     """A patient's history: the headline (what changed beyond noise), visits, index trends, the latest pictures."""
     p = get_object_or_404(_patients(request.user).select_related("clinic"), pk=patient_id)
-    scans = _scans(p)
-    best, last_jobs = _best_of_visits(scans), _last_scan_jobs(p)
+    scans = scans_of(p)
+    best, last_jobs = best_of_visits(scans), _last_scan_jobs(p)
     visits = []
     for v in p.visits.all():
         rec = best.get(v.pk)
         visits.append({"visit": v, "rec": rec, "job": last_jobs.get(v.pk), "flat": _flat(rec.indices if rec else None),
-                       "age": _age(p.date_of_birth, v.date), "quality": _quality(rec) if rec else None,
+                       "age": _age(p.date_of_birth, v.date), "quality": scan_quality(rec) if rec else None,
                        "scans": sum(1 for s in scans if s.session.visit_id == v.pk)})
-    mdc = _mdc(p.clinic)
-    noise = _noise(p.clinic)
+    mdc = cached_mdc(p.clinic)
+    noise = noise_state(p.clinic)
     rows = []
     for key in labels.TABLE_KEYS:
         ix = labels.index(key)
@@ -492,9 +492,9 @@ def patient(request, patient_id):
                      "cells": [{"value": v, "beyond": (not ix.growth and v is not None and first is not None
                                                        and m is not None and abs(v - first) > m)} for v in vals]})
     latest = next((x["rec"] for x in reversed(visits) if x["rec"]), None)
-    headline = _headline(p, [x["rec"] for x in visits], mdc, noise)
+    headline = headline_of(p, [x["rec"] for x in visits], mdc, noise)
     return render(request, "clinic/patient.html", {
-        **_patient_context(p), "visits": visits, "rows": rows, "latest": latest, "scans": scans,
+        **patient_context(p), "visits": visits, "rows": rows, "latest": latest, "scans": scans,
         "noise": noise, "headline": headline,
         "latest_pictures": _pictures("reconstruction", latest) if latest else [],
         "earlier_default": scans[0].pk if scans else None, "later_default": latest.pk if latest else None,
@@ -516,11 +516,11 @@ def patient_trend(request, patient_id):
     from analysis import pictures
 
     p = get_object_or_404(_patients(request.user).select_related("clinic"), pk=patient_id)
-    best = _best_of_visits(_scans(p))
+    best = best_of_visits(scans_of(p))
     series = [(v.date, rec.pk, rec.indices) for v in p.visits.all() if (rec := best.get(v.pk)) and rec.indices]
     if not series:
         raise Http404("no visit with a torso yet")
-    mdc = {k: v["mdc"] for k, v in _mdc(p.clinic).items()}
+    mdc = {k: v["mdc"] for k, v in cached_mdc(p.clinic).items()}
     name = _trend_name(p, series, mdc)
     if default_storage.exists(name):
         return FileResponse(default_storage.open(name, "rb"), content_type="image/png")
@@ -544,23 +544,23 @@ def patient_trend(request, patient_id):
 def visit(request, visit_id):
     """A visit: its verdict on the scan's quality, torso pictures, indices in words; technical details folded."""
     v = get_object_or_404(Visit.objects.filter(patient__clinic__in=clinics_of(request.user)), pk=visit_id)
-    rec = _best(v)
+    rec = best_scan(v)
     jobs = list(_scan_jobs(v))
     running = any(j.state in (Job.QUEUED, Job.RUNNING) for j in jobs)
     report = rec.report if rec else {}
     pairs = report.get("registration", {}).get("pairs", [])
     arms = {a: {"points": r.get("points"), "sigma": r.get("sigma_mm_median")} for a, r in report.get("arms", {}).items()}
-    scans = [s for s in _scans(v.patient) if s.session.visit_id == v.pk]
+    scans = [s for s in scans_of(v.patient) if s.session.visit_id == v.pk]
     landmark_job = pipeline.landmark_job_of(rec) if rec else None
     recomputing = landmark_job is not None and landmark_job.state in (Job.QUEUED, Job.RUNNING)
     return render(request, "clinic/visit.html", {
-        **_patient_context(v.patient, v.date),
+        **patient_context(v.patient, v.date),
         "visit": v, "rec": rec, "jobs": jobs, "running": running or recomputing, "pairs": pairs, "arms": arms,
         "landmark_job": landmark_job, "recomputing": recomputing,
         "pick_src": reverse("picture", args=["reconstruction", rec.pk, f"torso-{PICK_VIEW}"])
         if rec and f"torso-{PICK_VIEW}" in (rec.pictures or {}) and (rec.indices or {}).get("frame") else None,
-        "quality": _quality(rec), "index_rows": _index_rows(rec.indices if rec else None),
-        "not_measurable": _not_measurable(rec, "this scan") if rec else None,
+        "quality": scan_quality(rec), "index_rows": index_rows_of(rec.indices if rec else None),
+        "not_measurable": not_measurable_of(rec, "this scan") if rec else None,
         "pictures": _pictures("reconstruction", rec) if rec else [], "scans": scans,
         "landmarks": (rec.indices or {}).get("landmarks", {}) if rec else {},
         "may_rerun": _may(request, v.patient.clinic_id),
@@ -603,7 +603,7 @@ def _torso_to_correct(request, visit_id):
     role that may not correct landmarks."""
     v = get_object_or_404(Visit.objects.filter(patient__clinic__in=clinics_of(request.user)), pk=visit_id)
     _require_role(request, v.patient.clinic_id, CORRECT_LANDMARKS)
-    return v, _best(v)
+    return v, best_scan(v)
 
 
 def _history_after(request, rec) -> list:
@@ -693,7 +693,7 @@ def comparison(request, patient_id):
     progress and refreshes itself until the result is there. A failed job can be tried again (POST)."""
     p = get_object_or_404(_patients(request.user), pk=patient_id)
     back = reverse("patient", args=[p.pk])
-    scans = _scans(p)
+    scans = scans_of(p)
     order = {r.pk: k for k, r in enumerate(scans)}
     by_pk = {r.pk: r for r in scans}
     try:
@@ -708,7 +708,7 @@ def comparison(request, patient_id):
                 same = [r for r in scans if r.session.visit_id == earlier_v.pk]
                 earlier, later = (same[0], same[-1]) if same else (None, None)
             else:
-                earlier, later = _best(earlier_v), _best(later_v)
+                earlier, later = best_scan(earlier_v), best_scan(later_v)
             if earlier is None or later is None:
                 return _refused(request, "Both visits need a reconstructed torso to be compared.", 404, back)
             earlier, later = by_pk.get(earlier.pk), by_pk.get(later.pk)
@@ -728,7 +728,7 @@ def comparison(request, patient_id):
         comp = Comparison.objects.filter(earlier=earlier, later=later).first()
         if comp is None:
             return render(request, "clinic/comparison_progress.html", {
-                **_patient_context(p), "job": job, "earlier": earlier, "later": later,
+                **patient_context(p), "job": job, "earlier": earlier, "later": later,
                 "repeat": earlier.session.visit_id == later.session.visit_id,
                 "waited": int((timezone.now() - job.dispatched).total_seconds()),
                 "error": _job_error_words(job) if job.state == Job.FAILED else None})
@@ -775,11 +775,11 @@ def comparison_index_rows(comp, mdc) -> list[dict]:
 
 
 def _comparison_page(request, p, earlier, later, comp, scans):
-    mdc = _mdc(p.clinic)
-    noise = _noise(p.clinic)
+    mdc = cached_mdc(p.clinic)
+    noise = noise_state(p.clinic)
     facing = comp.report.get("facing") or {}
     repeat = earlier.session.visit_id == later.session.visit_id
-    verdict = _verdict(p.clinic, earlier, later, "Same-day re-scan" if repeat else "Between these scans", mdc,
+    verdict = verdict_of(p.clinic, earlier, later, "Same-day re-scan" if repeat else "Between these scans", mdc,
                        noise, sides_agree=facing.get("consistent", True), growth=comp.report.get("growth"))
     index_rows = comparison_index_rows(comp, mdc)
     regions = []
@@ -792,12 +792,12 @@ def _comparison_page(request, p, earlier, later, comp, scans):
     growth_rows = [{"label": name, "earlier": growth["earlier"].get(key), "later": growth["later"].get(key),
                     "change": growth["change"].get(key)} for key, name in labels.GROWTH_FIGURES] if growth else []
     return render(request, "clinic/comparison.html", {
-        **_patient_context(p), "earlier": earlier, "later": later, "earlier_date": earlier.session.visit.date,
+        **patient_context(p), "earlier": earlier, "later": later, "earlier_date": earlier.session.visit.date,
         "later_date": later.session.visit.date, "comparison": comp, "report": comp.report,
         "regions": regions, "index_rows": index_rows, "facing": facing, "noise": noise, "growth_rows": growth_rows,
         "repeat": repeat, "verdict": verdict, "scans": scans,
         "pictures": _pictures("comparison", comp),
-        "quality": {"earlier": _quality(earlier), "later": _quality(later)}})
+        "quality": {"earlier": scan_quality(earlier), "later": scan_quality(later)}})
 
 
 @login_required
@@ -817,7 +817,7 @@ def _calibration_due(r, now) -> dict:
         return {"last": None, "due": None, "overdue": True}
     due = last.calibrated_at + timedelta(days=r.recalibration_interval_days)
     return {"last": last.calibrated_at, "due": due, "overdue": due < now,
-            "in_words": _span(now.date(), due.date()) if due >= now else _span(due.date(), now.date())}
+            "in_words": span_words(now.date(), due.date()) if due >= now else span_words(due.date(), now.date())}
 
 
 def _rig_page(request, r, new_key=None):
@@ -952,7 +952,7 @@ def picture_page(request, kind, pk, name):
         raise Http404("not a patient's picture")
     title, alt = labels.picture(name)
     return render(request, "clinic/picture.html", {
-        **_patient_context(v.patient, v.date), "visit": v, "title": title, "alt": alt,
+        **patient_context(v.patient, v.date), "visit": v, "title": title, "alt": alt,
         "src": reverse("picture", args=[kind, pk, name]), "comparison": subject,
         "earlier_date": subject.earlier.session.visit.date if subject else None})
 
@@ -1145,7 +1145,7 @@ def edit_patient(request, patient_id):
     p = get_object_or_404(_patients(request.user), pk=patient_id)
     _require_role(request, p.clinic_id, EDIT_PATIENTS)
     form = PatientForm(request.POST or None, instance=p)
-    ctx = _patient_context(p)
+    ctx = patient_context(p)
     if request.method == "POST":
         if form.is_valid():
             form.save()
@@ -1160,7 +1160,7 @@ def new_visit(request, patient_id):
     p = get_object_or_404(_patients(request.user), pk=patient_id)
     _require_role(request, p.clinic_id, EDIT_PATIENTS)
     form = VisitForm(request.POST or None, instance=Visit(patient=p, clinician=request.user))
-    ctx = _patient_context(p)
+    ctx = patient_context(p)
     if request.method == "POST":
         if form.is_valid():
             v = form.save()
@@ -1175,7 +1175,7 @@ def edit_visit(request, visit_id):
     v = get_object_or_404(Visit.objects.filter(patient__clinic__in=clinics_of(request.user)), pk=visit_id)
     _require_role(request, v.patient.clinic_id, EDIT_PATIENTS)
     form = VisitForm(request.POST or None, instance=v)
-    ctx = _patient_context(v.patient, v.date)
+    ctx = patient_context(v.patient, v.date)
     if request.method == "POST":
         if form.is_valid():
             form.save()
