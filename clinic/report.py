@@ -7,22 +7,32 @@ when the first is full. What a report says is what the pages say: the verdict,
 the scan quality and the index rows come from the pages' own helpers in
 :mod:`clinic.views`, the words from :mod:`clinic.labels`, the trend picture from
 the same drawing the history page shows.
+
+A download is not drawn again (about a second) while nothing it shows has changed: :func:`report_state` names the
+state of everything a report can show, the laid out pages are drawn once per state and kept in Django's cache, and
+the footer naming who produced the report, and when, is written on each download (:func:`stamp`).
 """
 
 from __future__ import annotations
 
 import functools
+import hashlib
 import io
+import json
+import logging
 import re
 import textwrap
+from datetime import timezone as dt_timezone
+from pathlib import Path
 
+from django.core.cache import cache
 from django.core.files.storage import default_storage
 from django.utils import timezone
 
 from . import labels
 # the pages' own helpers: the report calls them (rather than re-deriving a verdict) so that paper and screen never
 # disagree
-from .views import (best_of_visits, best_scan, cached_mdc, comparison_index_rows, headline_of, index_rows_of,
+from .views import (best_of_visits, cached_mdc, comparison_index_rows, headline_of, index_rows_of,
                     noise_state, not_measurable_of, patient_context, scan_quality, scans_of, span_words, verdict_of)
 
 MAX_PAGES = 2
@@ -70,21 +80,45 @@ def _advance(char: str, bold: bool) -> float:
     return font.load_char(ord(char)).linearHoriAdvance / 65536 / 100
 
 
+class Picture:
+    """A PNG placed on a sheet: its size in pixels (read from its header: no decoding while laying out), the key of
+    what it shows (its bytes' digest unless given) and its bytes, decoded only when the sheets are drawn."""
+
+    def __init__(self, png: bytes, key: str | None = None):
+        self.png = png
+        self.key = key or hashlib.sha256(png).hexdigest()
+        self.width, self.height = png_size(png)
+
+
+def png_size(data: bytes) -> tuple[int, int]:
+    """(width, height) of a PNG, from its IHDR chunk."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR":
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    from matplotlib.image import imread
+
+    a = imread(io.BytesIO(data), format="png")  # not a PNG's header: decoded, or refused, as drawing would
+    return a.shape[1], a.shape[0]
+
+
 class Sheets:
-    """A4 pages filled top to bottom; at most ``max_pages``: what does not fit is left out, and said so."""
+    """A4 pages filled top to bottom; at most ``max_pages``: what does not fit is left out, and said so.
+
+    Laying out records each page's drawing operations (texts, rules, shades, pictures, in points from the page's
+    top left corner) without matplotlib; :meth:`pdf` and :meth:`png` draw them. The ``footer`` (who produced the
+    report, and when) is the one per-download line: it is not among the recorded operations, so that
+    :meth:`fingerprint` names what the report shows and :meth:`static_pdf` draws it once for every download
+    (:func:`stamp` writes the footer on)."""
 
     def __init__(self, running_head: str, footer: str, max_pages: int = MAX_PAGES):
         self.running_head, self.footer, self.max_pages = running_head, footer, max_pages
         self.w, self.h = A4_IN[0] * PT, A4_IN[1] * PT
-        self.pages, self.y, self.overflow, self.core = [], 0.0, False, True
+        self.pages: list[list[tuple]] = []
+        self.y, self.overflow, self.core = 0.0, False, True
         self._new_page()
 
     # -- pages --------------------------------------------------------------------------------------------------------
     def _new_page(self):
-        from matplotlib.figure import Figure
-
-        fig = Figure(figsize=A4_IN)
-        self.pages.append(fig)
+        self.pages.append([])
         self.y = MARGIN_TOP
         if len(self.pages) > 1:  # every sheet names its patient: pages get separated
             self.text_at(MARGIN_X, self.y, self.running_head, 8, color=MUTED)
@@ -107,32 +141,30 @@ class Sheets:
         self.overflow = True
         return False
 
-    # -- drawing ------------------------------------------------------------------------------------------------------
-    def _fig_xy(self, x, y):
-        return x / self.w, 1 - y / self.h
-
-    def text_at(self, x, y, s, size, bold=False, color=INK, ha="left"):
+    # -- laying out ---------------------------------------------------------------------------------------------------
+    def text_at(self, x, y, s, size, bold=False, color=INK, ha="left", va="top"):
         s = plain(s)
         self.core = self.core and core_font_fits(s)
-        # parse_math=False: a "$" in a name or a note is text, not mathematics
-        self.pages[-1].text(*self._fig_xy(x, y), s, fontsize=size, fontweight="bold" if bold else "normal",
-                            color=color, ha=ha, va="top", parse_math=False)
+        self.pages[-1].append(("text", x, y, s, size, bold, color, ha, va))
 
     def text_width(self, s: str, size: float, bold=False) -> float:
         return 1.05 * size * sum(_advance(c, bold) for c in s)  # 5 %: a hinted preview (PNG) draws wider
 
     def wrap(self, s: str, size: float, width: float, bold=False) -> list[str]:
-        """Greedy word wrap to ``width`` points."""
-        lines = []
+        """Greedy word wrap to ``width`` points (a line's width is the sum of its characters' advances: each word
+        adds its own and a space's)."""
+        lines, scale, space = [], 1.05 * size, _advance(" ", bold)
         for paragraph in plain(str(s)).split("\n"):
-            line = ""
+            line, line_w = "", 0.0
             for word in paragraph.split(" "):
-                trial = f"{line} {word}" if line else word
-                if line and self.text_width(trial, size, bold) > width:
+                word_w = sum(_advance(c, bold) for c in word)
+                if line and scale * (line_w + space + word_w) > width:
                     lines.append(line)
-                    line = word
+                    line, line_w = word, word_w
+                elif line:
+                    line, line_w = f"{line} {word}", line_w + space + word_w
                 else:
-                    line = trial
+                    line, line_w = word, word_w
             lines.append(line)
         return lines
 
@@ -156,40 +188,29 @@ class Sheets:
         self.y = min(self.y + h, self.h - MARGIN_BOTTOM)
 
     def rule(self, color=RULE, lw=0.6):
-        from matplotlib.lines import Line2D
-
-        x0, y0 = self._fig_xy(MARGIN_X, self.y)
-        x1, _ = self._fig_xy(MARGIN_X + self.width, self.y)
-        self.pages[-1].add_artist(Line2D([x0, x1], [y0, y0], color=color, lw=lw))
+        self.pages[-1].append(("rule", MARGIN_X, MARGIN_X + self.width, self.y, color, lw))
         self.y += 4
 
     def _shade(self, x, y, w, h, color=SHADE):
-        from matplotlib.patches import Rectangle
+        self.pages[-1].append(("shade", x, y, w, h, color))
 
-        fx, fy = self._fig_xy(x, y + h)
-        self.pages[-1].add_artist(Rectangle((fx, fy), w / self.w, h / self.h, color=color, lw=0, zorder=-1))
-
-    def images(self, pngs: list[bytes], max_h: float, min_h: float = 150.0, caption: str | None = None):
-        """Pictures side by side, as large as the width and the page's remaining room allow (down to ``min_h``)."""
-        from matplotlib.image import imread
-
-        arrays = [imread(io.BytesIO(p), format="png") for p in pngs if p]
-        if not arrays:
+    def images(self, pngs: list, max_h: float, min_h: float = 150.0, caption: str | None = None):
+        """Pictures (PNG bytes or :class:`Picture`) side by side, as large as the width and the page's remaining
+        room allow (down to ``min_h``)."""
+        pictures = [p if isinstance(p, Picture) else Picture(p) for p in pngs if p]
+        if not pictures:
             return
         gap = 8.0
         caption_h = 0.0 if not caption else 8 * 1.3 * len(self.wrap(caption, 8, self.width)) + 4
-        ratios = [a.shape[1] / a.shape[0] for a in arrays]  # width / height
-        h = min(max_h, (self.width - gap * (len(arrays) - 1)) / sum(ratios))
+        ratios = [p.width / p.height for p in pictures]
+        h = min(max_h, (self.width - gap * (len(pictures) - 1)) / sum(ratios))
         if self.room() - caption_h < min(h, min_h):
             if not self.ensure(min(h, min_h) + caption_h):
                 return
         h = min(h, self.room() - caption_h)
-        x = MARGIN_X + (self.width - (h * sum(ratios) + gap * (len(arrays) - 1))) / 2
-        for a, r in zip(arrays, ratios):
-            fx, fy = self._fig_xy(x, self.y + h)
-            ax = self.pages[-1].add_axes((fx, fy, h * r / self.w, h / self.h))
-            ax.imshow(a, interpolation="antialiased")
-            ax.set_axis_off()
+        x = MARGIN_X + (self.width - (h * sum(ratios) + gap * (len(pictures) - 1))) / 2
+        for p, r in zip(pictures, ratios):
+            self.pages[-1].append(("image", x, self.y, h * r, h, p))
             x += h * r + gap
         self.y += h + 4
         if caption:
@@ -234,33 +255,82 @@ class Sheets:
 
     # -- output -------------------------------------------------------------------------------------------------------
     def _finish(self):
+        """The last operations, once: the note that something was left out, and each page's number."""
         if getattr(self, "_finished", False):
             return
         self._finished = True
         if self.overflow:  # said on the paper itself, so a reader knows the screen has more
-            self.text_at(MARGIN_X, self.h - MARGIN_BOTTOM + 4, "Not everything fitted on two pages: the page on "
-                       "screen has the rest.", 7.5, color=WARN)
+            self.pages[-1].append(("text", MARGIN_X, self.h - MARGIN_BOTTOM + 4, "Not everything fitted on two pages: "
+                                   "the page on screen has the rest.", 7.5, False, WARN, "left", "top"))
         n = len(self.pages)
-        for k, fig in enumerate(self.pages, 1):
-            for x, s, ha in ((MARGIN_X, self.footer, "left"), (self.w - MARGIN_X, f"page {k} of {n}", "right")):
-                self.core = self.core and core_font_fits(s)
-                fig.text(x / self.w, 22 / self.h, s, fontsize=7, color=MUTED, ha=ha, va="bottom", parse_math=False)
+        for k, ops in enumerate(self.pages, 1):
+            s = f"page {k} of {n}"
+            self.core = self.core and core_font_fits(s)
+            ops.append(("text", self.w - MARGIN_X, self.h - FOOTER_Y, s, 7, False, MUTED, "right", "bottom"))
+
+    def fingerprint(self) -> str:
+        """A digest of everything the pages show, the per-download footer apart (pictures by their keys), and of
+        the code that draws them: two reports with the same fingerprint are the same drawing."""
+        self._finish()
+        ops = [[op[:-1] + (op[-1].key,) if op[0] == "image" else op for op in page] for page in self.pages]
+        return hashlib.sha256(repr((_code_state(), self.core, ops)).encode()).hexdigest()
+
+    def _figures(self, footer: str | None) -> tuple[list, bool]:
+        """The pages drawn with matplotlib, ``footer`` on each unless None; and whether the viewer's Helvetica
+        writes every text."""
+        from matplotlib.figure import Figure
+        from matplotlib.image import imread
+        from matplotlib.lines import Line2D
+        from matplotlib.patches import Rectangle
+
+        self._finish()
+        core = self.core and (footer is None or core_font_fits(footer))
+        # Helvetica's regular weight is "medium": asked so, the font lookup does not warn
+        regular = "medium" if core else "normal"
+        w, h = self.w, self.h
+        figures = []
+        for ops in self.pages:
+            fig = Figure(figsize=A4_IN)
+            if footer is not None:
+                ops = [*ops, ("text", MARGIN_X, h - FOOTER_Y, footer, 7, False, MUTED, "left", "bottom")]
+            for op in ops:
+                if op[0] == "text":
+                    _, x, y, s, size, bold, color, ha, va = op
+                    # parse_math=False: a "$" in a name or a note is text, not mathematics
+                    fig.text(x / w, 1 - y / h, s, fontsize=size, fontweight="bold" if bold else regular, color=color,
+                             ha=ha, va=va, parse_math=False)
+                elif op[0] == "rule":
+                    _, x0, x1, y, color, lw = op
+                    fig.add_artist(Line2D([x0 / w, x1 / w], [1 - y / h, 1 - y / h], color=color, lw=lw))
+                elif op[0] == "shade":
+                    _, x, y, sw, sh, color = op
+                    fig.add_artist(Rectangle((x / w, 1 - (y + sh) / h), sw / w, sh / h, color=color, lw=0, zorder=-1))
+                else:
+                    _, x, y, iw, ih, picture = op
+                    ax = fig.add_axes((x / w, 1 - (y + ih) / h, iw / w, ih / h))
+                    ax.imshow(imread(io.BytesIO(picture.png), format="png"), interpolation="antialiased")
+                    ax.set_axis_off()
+            figures.append(fig)
+        return figures, core
 
     def pdf(self, metadata: dict | None = None) -> bytes:
+        """The whole report, its footer drawn by matplotlib."""
+        return self._pdf(self.footer, metadata)
+
+    def static_pdf(self) -> bytes:
+        """The report without its footer, for :func:`stamp` to write the footer and the document's information on."""
+        return self._pdf(None, None)
+
+    def _pdf(self, footer, metadata) -> bytes:
         from matplotlib.backends.backend_pdf import PdfPages
 
         import matplotlib
 
-        self._finish()
-        if self.core:  # Helvetica's regular weight is "medium": asked so, the font lookup does not warn
-            for fig in self.pages:
-                for t in fig.texts:
-                    if t.get_fontweight() == "normal":
-                        t.set_fontweight("medium")
+        figures, core = self._figures(footer)
         buf = io.BytesIO()
-        with matplotlib.rc_context({"pdf.use14corefonts": self.core, "pdf.compression": 6}), \
+        with matplotlib.rc_context({"pdf.use14corefonts": core, "pdf.compression": 6}), \
                 PdfPages(buf, metadata=metadata or {}) as pdf:
-            for fig in self.pages:
+            for fig in figures:
                 pdf.savefig(fig)
         return buf.getvalue()
 
@@ -269,9 +339,8 @@ class Sheets:
         from matplotlib.figure import Figure
         from matplotlib.image import imread
 
-        self._finish()
         shots = []
-        for fig in self.pages:
+        for fig in self._figures(self.footer)[0]:
             b = io.BytesIO()
             fig.savefig(b, format="png", dpi=dpi)
             shots.append(imread(io.BytesIO(b.getvalue()), format="png"))
@@ -287,6 +356,126 @@ class Sheets:
         return b.getvalue()
 
 
+@functools.lru_cache(maxsize=1)
+def _code_state() -> str:
+    """The code a report rests on (this module, the words, the pages' helpers, the trend's drawing, the changes'
+    verdicts, matplotlib's version): a cache shared by processes of two releases (Redis) never serves the older
+    one's drawing."""
+    import matplotlib
+
+    from analysis import pictures
+
+    from analysis import indices, repeatability
+
+    from . import views
+
+    digest = hashlib.sha256(matplotlib.__version__.encode())
+    for path in (__file__, labels.__file__, views.__file__, pictures.__file__, indices.__file__,
+                 repeatability.__file__):
+        digest.update(Path(path).read_bytes())
+    return digest.hexdigest()[:16]
+
+
+# --- the per-download footer, written on a report drawn once -------------------------------------------------------
+
+FOOTER_Y = 22.0  # points: the footer's bottom, above the page's bottom edge
+FOOTER_SIZE = 7.0
+# matplotlib places a text's bottom ("va=bottom") at the descent of "lp" below its baseline: Helvetica's 'p'
+# reaches 207/1000 of the size below it (its AFM metrics), so the stamped footer sits where matplotlib draws it
+FOOTER_BASELINE = FOOTER_Y + 0.207 * FOOTER_SIZE
+
+
+def _pdf_string(s: str) -> bytes:
+    """A PDF text string: a literal if ASCII, else UTF-16 with its byte order mark."""
+    if s.isascii():
+        return b"(" + re.sub(rb"([\\()])", rb"\\\1", s.encode("ascii")).replace(b"\r", b"\\r").replace(
+            b"\n", b"\\n") + b")"
+    return b"<FEFF" + s.encode("utf-16-be").hex().upper().encode() + b">"
+
+
+def _pdf_date(t) -> bytes:
+    t = t.astimezone(dt_timezone.utc)
+    return f"(D:{t:%Y%m%d%H%M%S}Z)".encode()
+
+
+def stamp(pdf: bytes, footer: str, metadata: dict) -> bytes:
+    """``pdf``, a report from :meth:`Sheets.static_pdf`, with ``footer`` written at the foot of every page (in the
+    viewer's Helvetica, where matplotlib would draw it) and ``metadata`` (Title, Author, Creator, CreationDate) as
+    its document information: the per-download part of a report, added in a millisecond to a report drawn once.
+
+    The file is written again with every object as matplotlib wrote it but three: each page's contents become
+    ``[save state, matplotlib's page, restore state and the footer]``, its font dictionary gains the footer's font,
+    and the document information is replaced; then a new cross-reference table. ``footer`` must fit Windows-1252
+    (:func:`core_font_fits`). Raises ValueError if ``pdf`` is not laid out as matplotlib writes one."""
+    tail = re.search(rb"startxref\s+(\d+)\s+%%EOF\s*$", pdf[-64:])
+    if not tail:
+        raise ValueError("no startxref at the end")
+    start = int(tail.group(1))
+    m = re.match(rb"xref\s+0 (\d+)\s+", pdf[start:start + 64])
+    if not m:
+        raise ValueError("not one cross-reference section from object 0")
+    size = int(m.group(1))
+    entries = re.findall(rb"(\d{10}) (\d{5}) ([nf])", pdf[start + m.end():start + m.end() + 20 * size + 64])[:size]
+    trailer = pdf[start + m.end() + 20 * size:]
+    root, info = re.search(rb"/Root (\d+) 0 R", trailer), re.search(rb"/Info (\d+) 0 R", trailer)
+    if len(entries) != size or not root:
+        raise ValueError("cross-reference table or trailer not understood")
+    offsets = {k: int(e[0]) for k, e in enumerate(entries) if e[2] == b"n"}
+    order = sorted(offsets, key=offsets.get)
+    objects = {k: pdf[offsets[k]:offsets[order[i + 1]] if i + 1 < len(order) else start] for i, k in enumerate(order)}
+    q_obj, font_obj, footer_obj = size, size + 1, size + 2
+    new_size = size + 3
+    info_obj = int(info.group(1)) if info else size + 3
+    new_size += 0 if info else 1
+    pages = [k for k, body in objects.items() if re.match(rb"\d+ 0 obj\s*<< /Type /Page\b", body)]
+    if not pages:
+        raise ValueError("no page")
+    font_dicts = set()
+    for k in pages:
+        body = objects[k]
+        resources = re.search(rb"/Resources (\d+) 0 R", body)
+        font = resources and re.search(rb"/Font (\d+) 0 R", objects.get(int(resources.group(1)), b""))
+        if not font or int(font.group(1)) not in objects:
+            raise ValueError(f"page {k}: font resources not understood")
+        font_dicts.add(int(font.group(1)))
+        body, n = re.subn(rb"/Contents (\d+) 0 R", lambda c: b"/Contents [ %d 0 R %s 0 R %d 0 R ]"
+                          % (q_obj, c.group(1), footer_obj), body, count=1)
+        if n != 1:
+            raise ValueError(f"page {k}: contents not understood")
+        objects[k] = body
+    for k in font_dicts:
+        body = objects[k]
+        end = body.rfind(b">>")
+        if end < 0:
+            raise ValueError(f"font dictionary {k} not understood")
+        objects[k] = body[:end] + b"/FStamp %d 0 R " % font_obj + body[end:]
+    r, g, b = (int(MUTED[i:i + 2], 16) / 255 for i in (1, 3, 5))
+    text = re.sub(rb"([\\()])", rb"\\\1", footer.encode("cp1252"))
+    content = (b"Q\nq\n%.6f %.6f %.6f rg\nBT /FStamp %g Tf\n%.3f %.3f Td\n(%s) Tj ET\nQ\n"
+               % (r, g, b, FOOTER_SIZE, MARGIN_X, FOOTER_BASELINE, text))
+    fields = b"".join(b"/%s %s " % (key.encode(), _pdf_date(v) if key == "CreationDate" else _pdf_string(str(v)))
+                      for key, v in metadata.items() if v is not None)
+    producer = info and re.search(rb"/Producer \((?:\\.|[^\\)])*\)", objects.get(info_obj, b""))
+    fields += producer.group(0) + b" " if producer else b""
+    objects[q_obj] = b"%d 0 obj\n<< /Length 2 >>\nstream\nq\n\nendstream\nendobj\n" % q_obj
+    objects[font_obj] = (b"%d 0 obj\n<< /Type /Font /Subtype /Type1 /BaseFont /Helvetica /Encoding /WinAnsiEncoding "
+                         b">>\nendobj\n" % font_obj)
+    objects[footer_obj] = (b"%d 0 obj\n<< /Length %d >>\nstream\n%s\nendstream\nendobj\n"
+                           % (footer_obj, len(content), content))
+    objects[info_obj] = b"%d 0 obj\n<< %s>>\nendobj\n" % (info_obj, fields)
+    out = [pdf[:min(offsets.values())]]
+    at, where = len(out[0]), {}
+    for k in order + [k for k in sorted(objects) if k not in offsets]:
+        where[k] = at
+        out.append(objects[k])
+        at += len(objects[k])
+    out.append(b"xref\n0 %d\n0000000000 65535 f \n" % new_size)
+    out.extend(b"%010d 00000 n \n" % where[k] if k in where else b"0000000000 65535 f \n" for k in range(1, new_size))
+    out.append(b"trailer\n<< /Size %d /Root %s 0 R /Info %d 0 R >>\nstartxref\n%d\n%%%%EOF\n"
+               % (new_size, root.group(1), info_obj, at))
+    return b"".join(out)
+
+
 # --- what a report is made of ---------------------------------------------------------------------------------------
 
 def stored(name: str | None) -> bytes | None:
@@ -296,26 +485,68 @@ def stored(name: str | None) -> bytes | None:
         return fh.read()
 
 
-def trend_png(patient, until=None) -> bytes | None:
+TREND_SIZE_IN = (8.6, 5.4)  # its panel titles need 8.6 in
+# A report's drawings are kept in Django's cache under the state of what they show (a new state, a new key: a
+# landmark corrected, a comparison run again, a note edited, a new repeat pair changing the MDC): never stale, and
+# dropped a day after they were last drawn
+REPORT_CACHE_SECONDS = 24 * 3600
+
+log = logging.getLogger(__name__)
+
+
+def trend_picture(patient, until=None, scans=None) -> Picture | None:
     """The history page's trend picture (the same drawing of the same scans and MDCs as views.patient_trend) of the
     visits up to ``until``, drawn at a page's width: the page's picture, shrunk onto paper, has lettering too small
-    to read. A report of an earlier visit shows the trend as it stood then."""
-    import tempfile
-    from pathlib import Path
-
+    to read. A report of an earlier visit shows the trend as it stood then. ``scans``: the patient's
+    :func:`scans_of`, if already read. Drawn once per state of its scans' indices and the clinic's MDC, then taken
+    from the cache."""
     from analysis import pictures
 
-    visits = patient.visits.filter(date__lte=until) if until else patient.visits.all()
-    series = [(v.date, rec.indices) for v in visits if (rec := best_scan(v)) and rec.indices]
-    if not series:
+    best = best_of_visits(scans_of(patient) if scans is None else scans)
+    recs = sorted((r for r in best.values() if r.indices and (until is None or r.session.visit.date <= until)),
+                  key=lambda r: (r.session.visit.date, r.session.visit_id))  # the visits' order
+    if not recs:
         return None
+    series = [(str(r.session.visit.date), r.indices) for r in recs]
     mdc = {k: v["mdc"] for k, v in cached_mdc(patient.clinic).items()}
     figures = [(k, labels.label(k) + (f" ({labels.unit(k)})" if labels.unit(k) else ""))
                for k, _ in pictures.TREND_FIGURES]
-    with tempfile.TemporaryDirectory() as tmp:
-        png = pictures.trend_picture([(str(d), ind) for d, ind in series], Path(tmp) / "trend.png", mdc=mdc,
-                                     figures=figures, size_in=(8.6, 5.4))  # its panel titles need 8.6 in
-        return Path(png).read_bytes()
+    # what the drawing reads of each scan (pictures.trend_picture plots the figures' values only): hashed instead of
+    # the whole indices, a twentieth of their size
+    drawn = [[label, [_figure_value(ind, k) for k, _ in figures]] for label, ind in series]
+    state = json.dumps([drawn, mdc, figures, TREND_SIZE_IN, _code_state()], sort_keys=True, default=str)
+    key = f"torsoscan:report-trend:{hashlib.sha256(state.encode()).hexdigest()}"
+    png = cache.get(key)
+    if png is None:
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as tmp:
+            drawn = pictures.trend_picture(series, Path(tmp) / "trend.png", mdc=mdc, figures=figures,
+                                           size_in=TREND_SIZE_IN)
+            png = Path(drawn).read_bytes()
+        cache.set(key, png, REPORT_CACHE_SECONDS)
+    return Picture(png, key=key)
+
+
+def _figure_value(indices: dict, key: str) -> float | None:
+    """``analysis.repeatability.flatten(indices).get(key)`` without flattening all of ``indices``: the numeric leaf at
+    the dotted path ``key``, or None."""
+    import math
+
+    v = indices
+    for part in key.split("."):
+        if not isinstance(v, dict):
+            return None
+        v = v.get(part)
+    if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
+        return float(v)
+    return None
+
+
+def trend_png(patient, until=None) -> bytes | None:
+    """:func:`trend_picture`'s PNG."""
+    picture = trend_picture(patient, until)
+    return picture.png if picture else None
 
 
 def produced_by(request) -> str:
@@ -438,7 +669,8 @@ def comparison_sheets(request, comp) -> Sheets:
     earlier, later = comp.earlier, comp.later
     p = later.session.visit.patient
     clinic = p.clinic
-    labelled = {r.pk: r for r in scans_of(p)}  # scan labels ("… · scan 2 of 2 · reason")
+    scans = scans_of(p)
+    labelled = {r.pk: r for r in scans}  # scan labels ("… · scan 2 of 2 · reason")
     e_label = getattr(labelled.get(earlier.pk), "scan_label", _date(earlier.session.visit.date))
     l_label = getattr(labelled.get(later.pk), "scan_label", _date(later.session.visit.date))
     e_date, l_date = earlier.session.visit.date, later.session.visit.date
@@ -474,14 +706,16 @@ def comparison_sheets(request, comp) -> Sheets:
                   ("Change", 0.10, "right"), ("Scanner noise (MDC)", 0.10, "right"), ("Verdict", 0.14, "left")],
                  [[(_label(r), INK, True), r["earlier"], r["later"], r["change"], _mdc_words(r["mdc"]),
                    _verdict_cell(r["growth"], r["exceeds_mdc"])] for r in rows], size=7.2)
-    _conventions_and_trend(sheets, p, l_date)
+    _conventions_and_trend(sheets, p, l_date, scans)
     return sheets
 
 
 def visit_sheets(request, visit) -> Sheets:
     p = visit.patient
     clinic = p.clinic
-    rec = best_scan(visit)
+    scans = scans_of(p)
+    best = best_of_visits(scans)  # each visit's scan, as best_scan(visit): one query for the whole history
+    rec = best.get(visit.pk)
     ctx = patient_context(p, visit.date)
     mdc, noise = cached_mdc(clinic), noise_state(clinic)
     sub = [f"Visit of {_date(visit.date)}"]
@@ -505,7 +739,7 @@ def visit_sheets(request, visit) -> Sheets:
 
     # the history page's headline, as it read with this visit the latest: since the baseline and the last visit
     visits = list(p.visits.order_by("date", "pk"))
-    upto = [best_scan(v) for v in visits[:visits.index(visit) + 1]]
+    upto = [best.get(v.pk) for v in visits[:visits.index(visit) + 1]]
     headline = headline_of(p, upto, mdc, noise)
     for h in headline:
         _verdict(sheets, h)
@@ -533,13 +767,13 @@ def visit_sheets(request, visit) -> Sheets:
                      "" if r["growth"] else _mdc_words((mdc.get(key) or {}).get("mdc"))])
     sheets.table([("Index", 0.30, "left"), ("Value, and where it is largest on each side", 0.59, "left"),
                   ("Scanner noise (MDC)", 0.11, "right")], rows, size=7.2)
-    _conventions_and_trend(sheets, p, visit.date)
+    _conventions_and_trend(sheets, p, visit.date, scans)
     return sheets
 
 
-def _conventions_and_trend(sheets: Sheets, p, until):
+def _conventions_and_trend(sheets: Sheets, p, until, scans):
     sheets.para(SIDE_CONVENTION + " " + MDC_WORDS, 7.5, color=MUTED, after=4)
-    trend = trend_png(p, until)
+    trend = trend_picture(p, until, scans)
     if trend and sheets.room() < TREND_MIN_H + 45 and len(sheets.pages) >= sheets.max_pages:
         sheets.overflow = True  # no room for a readable trend: not a heading without its picture either
     elif trend:
@@ -551,10 +785,110 @@ def _conventions_and_trend(sheets: Sheets, p, until):
 
 def comparison_pdf(request, comp) -> bytes:
     p = comp.later.session.visit.patient
-    return comparison_sheets(request, comp).pdf(_metadata(request, f"Comparison report, {p.name} ({p.identifier})"))
+    return _report(request, ("comparison", comp.pk), p, lambda: comparison_sheets(request, comp),
+                   f"Comparison report, {p.name} ({p.identifier})")
 
 
 def visit_pdf(request, visit) -> bytes:
     p = visit.patient
-    return visit_sheets(request, visit).pdf(_metadata(request, f"Visit report, {p.name} ({p.identifier}), "
-                                                               f"{visit.date}"))
+    return _report(request, ("visit", visit.pk), p, lambda: visit_sheets(request, visit),
+                   f"Visit report, {p.name} ({p.identifier}), {visit.date}")
+
+
+# --- drawn once per state ------------------------------------------------------------------------------------------
+#
+# Drawing a report's pages with matplotlib costs about a second; reading and laying out what it shows, a tenth of
+# that at 10 000 patients (every scan's indices read for the trend and the headlines). So a download asks first for
+# the state of what a report can show: one query of a digest per row of the patient's records (visits, capture
+# sessions, jobs, reconstructions, comparisons: every column, the clinicians' and the clinic's names with them),
+# the clinic's MDC and noise state, today's date (the age), the code. A state seen before names the drawing made
+# of it (the laid out pages' fingerprint), and that drawing is kept: the footer naming who produced the report and
+# when is written on it (stamp). A new state (a landmark corrected, a comparison run again, a note edited, a
+# repeat pair added, midnight) is laid out again; only if its pages differ from every drawing kept are they drawn
+# again. The pictures on the pages are named in those rows: the analysis stores every new drawing under a name of
+# its own (analysis_step). Nothing of the user is in a kept drawing, and the view has checked access before.
+
+@functools.lru_cache(maxsize=None)
+def _state_sql(kind: str) -> str:
+    """One query: a row per row of the patient's records a ``kind`` ("visit" or "comparison") report can read,
+    the table's name then the MD5 of each column (every concrete column, from the models: a column added later is
+    in it too) and of the names shown with it; padded with empty columns so that the tables make one union. Its
+    parameters: the patient's id five times, then the visit's or the comparison's id."""
+    from django.contrib.auth import get_user_model
+    from django.db import connection
+
+    from .models import CaptureSession, Clinic, Comparison, Job, Patient, Reconstruction, Visit
+
+    q = connection.ops.quote_name
+    t = {m: q(m._meta.db_table) for m in (CaptureSession, Clinic, Comparison, Job, Patient, Reconstruction, Visit,
+                                          get_user_model())}
+    patient_visits = f'{t[Visit]} v ON v.{q("id")} = s.{q("visit_id")} AND v.{q("patient_id")} = %s'
+    sessions = f'{t[CaptureSession]} s ON s.{q("id")}'
+    if kind == "visit":  # the headlines' comparisons: those of this visit's scans with the earlier ones
+        comparisons = (f'{t[Comparison]} c JOIN {t[Reconstruction]} r ON r.{q("id")} = c.{q("later_id")} '
+                       f'JOIN {sessions} = r.{q("session_id")} AND s.{q("visit_id")} = %s')
+    else:
+        comparisons = f'{t[Comparison]} c WHERE c.{q("id")} = %s'
+    user = get_user_model()
+    tables = [
+        ("patient", Patient, "p", [f'cl.{q("name")}'],
+         f'{t[Patient]} p JOIN {t[Clinic]} cl ON cl.{q("id")} = p.{q("clinic_id")} WHERE p.{q("id")} = %s'),
+        ("visit", Visit, "v", [f"u.{q(user._meta.get_field(n).column)}" for n in ("first_name", "last_name",
+                                                                                    "username")],
+         f'{t[Visit]} v LEFT JOIN {t[user]} u ON u.{q("id")} = v.{q("clinician_id")} WHERE v.{q("patient_id")} = %s'),
+        ("session", CaptureSession, "s", [], f"{t[CaptureSession]} s JOIN {patient_visits}"),
+        ("job", Job, "j", [], f'{t[Job]} j JOIN {sessions} = j.{q("session_id")} JOIN {patient_visits}'),
+        ("reconstruction", Reconstruction, "r", [],
+         f'{t[Reconstruction]} r JOIN {sessions} = r.{q("session_id")} JOIN {patient_visits}'),
+        ("comparison", Comparison, "c", [], comparisons)]
+    columns = {label: [f"{alias}.{q(f.column)}" for f in model._meta.concrete_fields] + extra
+               for label, model, alias, extra, _ in tables}
+    width = max(len(c) for c in columns.values())
+    selects = []
+    for label, _, _, _, source in tables:
+        digests = [f"MD5(COALESCE(CAST({c} AS TEXT), '<null>'))" for c in columns[label]]
+        digests += ["''"] * (width - len(digests))
+        selects.append(f"SELECT '{label}', {', '.join(digests)} FROM {source}")
+    return " UNION ALL ".join(selects)
+
+
+def report_state(what: tuple, patient) -> str:
+    """A digest of everything a report of ``what`` (``("visit", pk)`` or ``("comparison", pk)``) on ``patient``
+    can show: see above."""
+    from django.db import connection
+
+    kind, pk = what
+    with connection.cursor() as cursor:
+        cursor.execute(_state_sql(kind), [patient.pk] * 5 + [pk])
+        rows = sorted(cursor.fetchall())
+    clinic = patient.clinic
+    state = json.dumps([kind, pk, str(timezone.localdate()), _code_state(), rows, cached_mdc(clinic),
+                        noise_state(clinic)], sort_keys=True, default=str)
+    return hashlib.sha256(state.encode()).hexdigest()
+
+
+def _report(request, what: tuple, patient, layout, title: str) -> bytes:
+    """The report's PDF for this download: ``layout()`` (its :class:`Sheets`) laid out and drawn once per state of
+    what it shows, the footer naming who produced it and when written on (:func:`stamp`). A footer the viewer's
+    Helvetica cannot write (a name such as "Łucja") is drawn with the whole report, each time."""
+    metadata = _metadata(request, title)
+    footer = _footer(request, patient.clinic)
+    if not core_font_fits(footer):
+        return layout().pdf(metadata)
+    state_key = f"torsoscan:report-state:{report_state(what, patient)}"
+    fingerprint = cache.get(state_key)
+    static = cache.get(f"torsoscan:report-pdf:{fingerprint}") if fingerprint else None
+    if static is None:
+        sheets = layout()
+        fingerprint = sheets.fingerprint()
+        pdf_key = f"torsoscan:report-pdf:{fingerprint}"
+        static = cache.get(pdf_key)
+        if static is None:
+            static = sheets.static_pdf()
+            cache.set(pdf_key, static, REPORT_CACHE_SECONDS)
+        cache.set(state_key, fingerprint, REPORT_CACHE_SECONDS)
+    try:
+        return stamp(static, footer, metadata)
+    except ValueError as e:  # not expected: matplotlib wrote the file; the whole report then, drawn as before
+        log.warning("report: the footer could not be written on the kept drawing (%s): drawn in full", e)
+        return layout().pdf(metadata)

@@ -59,7 +59,8 @@ def visit_report(request, pk):
 def comparison_report(request, pk):
     comp = get_object_or_404(Comparison.objects.filter(
         later__session__visit__patient__clinic__in=clinics_of(request.user),
-        earlier__session__visit__patient=F("later__session__visit__patient")), pk=pk)
+        earlier__session__visit__patient=F("later__session__visit__patient"))
+        .select_related("earlier__session__visit", "later__session__visit__patient__clinic"), pk=pk)
     later = comp.later.session.visit
     return _pdf(report.comparison_pdf(request, comp),
                 f"torsoscan-{later.patient.identifier}-comparison-{comp.earlier.session.visit.date}-{later.date}")

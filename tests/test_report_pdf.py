@@ -289,3 +289,216 @@ def test_a_same_day_rescan_report_says_repeatability_not_change(client, charlie,
     assert "Same-day re-scan of 1 Nov 2026" in text and "repeatability, not a change" in text
     assert "Two scans of the same visit" in text and "Between these scans" not in text
     assert "The deformation map of these two scans has not been drawn." in text
+
+
+# --- drawn once per state, the footer written on each download -----------------------------------------------------
+
+def _footer_position(data: bytes) -> tuple[float, float]:
+    """Where the text block that starts "Produced by" begins: the ``x y Td`` before its string."""
+    for m in re.finditer(rb"stream\r?\n(.*?)endstream", data, re.S):
+        raw = m.group(1)
+        try:
+            raw = zlib.decompress(raw)
+        except zlib.error:
+            pass
+        for block in re.findall(rb"\bBT\b(.*?)\bET\b", raw, re.S):
+            if b"(Produced by" in block:
+                x, y = re.search(rb"([-\d.]+) ([-\d.]+) Td", block).groups()
+                return float(x), float(y)
+    raise AssertionError("no footer")
+
+
+def _cross_references_hold(data: bytes) -> dict:
+    """Every in-use entry of the PDF's (one) cross-reference table points at its object; returns the trailer's
+    document information as ``{key: value}`` (literal strings only)."""
+    start = int(re.search(rb"startxref\s+(\d+)\s+%%EOF\s*$", data).group(1))
+    head = re.match(rb"xref\s+0 (\d+)\s+", data[start:])
+    size = int(head.group(1))
+    entries = re.findall(rb"(\d{10}) (\d{5}) ([nf])", data[start + head.end():])[:size]
+    assert len(entries) == size
+    for k, (offset, _, kind) in enumerate(entries):
+        if kind == b"n":
+            assert data[int(offset):].startswith(b"%d 0 obj" % k), k
+    trailer = data[start:]
+    assert b"/Size %d " % size in trailer and data.count(b"startxref") == 1
+    info = int(re.search(rb"/Info (\d+) 0 R", trailer).group(1))
+    body = data[int(entries[info][0]):].split(b"endobj", 1)[0]
+    return {k.decode(): _unescape(v).decode("latin-1")
+            for k, v in re.findall(rb"/(\w+) \(((?:\\.|[^\\)])*)\)", body)}
+
+
+def _page_texts(data: bytes) -> list[str]:
+    """Each page's text: the streams its ``/Contents`` names (one or an array), found through the cross-references."""
+    start = int(re.search(rb"startxref\s+(\d+)\s+%%EOF\s*$", data).group(1))
+    head = re.match(rb"xref\s+0 (\d+)\s+", data[start:])
+    offsets = [int(o) for o, _, _ in re.findall(rb"(\d{10}) (\d{5}) ([nf])", data[start + head.end():])]
+
+    def obj(k):
+        return data[offsets[k]:].split(b"endobj", 1)[0]
+
+    texts = []
+    for page in re.findall(rb"<< /Type /Page\b.*?>>", data, re.S):
+        refs = re.search(rb"/Contents (\[[^\]]*\]|\d+ 0 R)", page).group(1)
+        texts.append("\n".join(pdf_text(obj(int(k)) + b"endobj") for k in re.findall(rb"(\d+) 0 R", refs)))
+    return texts
+
+
+@pytest.fixture
+def draws(monkeypatch):
+    """Counts of what costs: the reports laid out, the PDF pages matplotlib draws and the trend pictures drawn; the
+    cache emptied first."""
+    from django.core.cache import cache
+    from matplotlib.backends.backend_pdf import PdfPages
+
+    from analysis import pictures
+    from clinic.report import Sheets
+
+    cache.clear()
+    counts = {"layouts": 0, "pages": 0, "trends": 0}
+    savefig, trend_picture, init = PdfPages.savefig, pictures.trend_picture, Sheets.__init__
+
+    def counted_init(self, *a, **kw):
+        counts["layouts"] += 1
+        return init(self, *a, **kw)
+
+    def counted_savefig(self, *a, **kw):
+        counts["pages"] += 1
+        return savefig(self, *a, **kw)
+
+    def counted_trend(*a, **kw):
+        counts["trends"] += 1
+        return trend_picture(*a, **kw)
+
+    monkeypatch.setattr(PdfPages, "savefig", counted_savefig)
+    monkeypatch.setattr(Sheets, "__init__", counted_init)
+    monkeypatch.setattr(pictures, "trend_picture", counted_trend)
+    return counts
+
+
+@pytest.mark.django_db
+def test_a_second_download_is_served_from_the_cache_with_its_own_footer(client, charlie, ada, olga, nobody,
+                                                                        reported_patient, draws):
+    patient, visits, comp = reported_patient
+    charlie.first_name, charlie.last_name = "Charlie", "Clinician"
+    charlie.save()
+    for url in (f"/visits/{visits[1].pk}/report.pdf", f"/comparisons/{comp.pk}/report.pdf"):
+        client.force_login(charlie)
+        before = dict(draws)
+        first = client.get(url).content
+        assert draws["pages"] - before["pages"] == page_count(first) and draws["trends"] - before["trends"] <= 1
+        drawn = dict(draws)
+        again = client.get(url).content
+        assert draws == drawn  # nothing laid out or drawn: the pages and the trend came from the cache
+        assert pdf_text(again) == pdf_text(first) and "Produced by Charlie Clinician on " in pdf_text(again)
+        assert _cross_references_hold(again)["Author"] == "charlie"
+        # another member of the clinic: the same drawing, with her own name in the footer and the metadata
+        client.force_login(ada)
+        other = client.get(url).content
+        assert draws == drawn
+        assert "Produced by ada on " in pdf_text(other) and "Charlie" not in pdf_text(other)
+        assert _cross_references_hold(other)["Author"] == "ada"
+        assert page_count(other) == page_count(first)
+        # the cache does not open a report to anyone else: still 404 for another clinic, and no drawing
+        for user in (olga, nobody):
+            client.force_login(user)
+            assert client.get(url).status_code == 404
+        assert draws == drawn
+
+
+@pytest.mark.django_db
+def test_a_report_is_never_stale_after_a_change_it_shows(client, charlie, reported_patient, draws):
+    from clinic.models import Reconstruction
+
+    patient, visits, comp = reported_patient
+    client.force_login(charlie)
+    url = f"/visits/{visits[1].pk}/report.pdf"
+    text = _get_pdf(client, url)
+    assert "Notes:" not in text and "Rib / lumbar hump height" in text
+    # a note added to the visit
+    visits[1].notes = "Brace worn 20 hours a day since August."
+    visits[1].save()
+    pages = draws["pages"]
+    text = _get_pdf(client, url)
+    assert "Notes: Brace worn 20 hours a day since August." in text and draws["pages"] > pages
+    # a landmark correction: the analysis writes the torso's indices and pictures again (here, by hand)
+    rec = Reconstruction.objects.get(pk=comp.later.pk)
+    hump = rec.indices["hump_mm"]
+    assert f"{hump:.1f} mm" in text
+    rec.indices = {**rec.indices, "hump_mm": 41.7,
+                   "landmarks": {**rec.indices["landmarks"], "vertebra_prominens": {"confidence": "clinician"}}}
+    # (each new picture under a name of its own, as analysis_step stores them)
+    rec.pictures = {**rec.pictures, "torso-back": default_storage.save("pictures/report-1-torso-back-2.png",
+                                                                       ContentFile(_png("torso-back, corrected")))}
+    rec.save()
+    pages, trends = draws["pages"], draws["trends"]
+    text = _get_pdf(client, url)
+    assert "41.7 mm" in text and f"{hump:.1f} mm" not in text
+    assert draws["pages"] > pages and draws["trends"] == trends + 1  # the trend shows the new hump too
+    # the same state again: from the cache
+    pages, trends = draws["pages"], draws["trends"]
+    assert _get_pdf(client, url) == text and (draws["pages"], draws["trends"]) == (pages, trends)
+    # a change the report does not show (a job's lease, the next visit due): laid out again, not drawn again
+    visits[1].next_visit_due = "2027-03-01"
+    visits[1].save()
+    layouts = draws["layouts"]
+    assert _get_pdf(client, url) == text and (draws["pages"], draws["trends"]) == (pages, trends)
+    assert draws["layouts"] == layouts + 1
+    # the asymmetry map alone drawn again: a new drawing of the report
+    rec.pictures = {**rec.pictures, "asymmetry": default_storage.save("pictures/report-1-asymmetry-2.png",
+                                                                      ContentFile(_png("asymmetry, redrawn")))}
+    rec.save()
+    _get_pdf(client, url)
+    assert draws["pages"] > pages and draws["trends"] == trends
+
+
+@pytest.mark.django_db
+def test_a_comparison_run_again_is_reported_as_it_now_stands(client, charlie, reported_patient, draws):
+    patient, visits, comp = reported_patient
+    client.force_login(charlie)
+    url = f"/comparisons/{comp.pk}/report.pdf"
+    text = _get_pdf(client, url)
+    assert "Trunk height +7.0 mm (455.0 mm to 462.0 mm)" in text  # growth, as the comparison measured it
+    comp.report["growth"]["later"]["height_mm"] = 466.5
+    comp.report["growth"]["change"]["height_mm"] = 11.5
+    comp.save()
+    pages = draws["pages"]
+    text = _get_pdf(client, url)
+    assert "Trunk height +11.5 mm (455.0 mm to 466.5 mm)" in text and "+7.0 mm" not in text
+    assert draws["pages"] > pages
+
+
+def test_the_written_footer_sits_where_matplotlib_draws_it_and_the_file_holds_together():
+    import datetime
+
+    from clinic.report import Sheets, stamp
+
+    footer = "Produced by Dr (Ann) O'Hara on 2 Dec 2026 at 09:15 UTC · Northside · torsoscan surface scan report"
+    sheets = Sheets("Robin Report · ID P-88", footer)
+    for k in range(90):
+        sheets.para(f"line {k} of a text on two pages")
+    drawn = sheets.pdf()
+    written = stamp(sheets.static_pdf(), footer, {"Title": "Visit report, Zoë", "Author": "ann",
+                                                   "CreationDate": datetime.datetime.now(datetime.timezone.utc)})
+    assert page_count(written) == page_count(drawn) == 2
+    (x0, y0), (x1, y1) = _footer_position(drawn), _footer_position(written)
+    assert abs(x0 - x1) < 0.05 and abs(y0 - y1) < 0.05, ((x0, y0), (x1, y1))
+    assert [footer in t for t in _page_texts(written)] == [True, True] and "page 2 of 2" in pdf_text(written)
+    info = _cross_references_hold(written)
+    assert info["Author"] == "ann" and info["CreationDate"].startswith("D:20")
+    assert "Title" not in info  # not ASCII: written as UTF-16 (hex), not a literal
+    assert b"/Title <FEFF" in written
+
+
+@pytest.mark.django_db
+def test_a_footer_the_viewers_font_cannot_write_is_drawn_with_the_report(client, charlie, reported_patient, draws):
+    patient, visits, comp = reported_patient
+    charlie.first_name, charlie.last_name = "\u0141ucja", "\u017bak"
+    charlie.save()
+    client.force_login(charlie)
+    url = f"/visits/{visits[1].pk}/report.pdf"
+    for _ in range(2):
+        pages = draws["pages"]
+        r = client.get(url)
+        assert r.status_code == 200 and draws["pages"] > pages  # drawn in full each time
+        text = pdf_text(r.content)
+        assert "ucja" in text and "?ucja" not in text and "Produced by" in text
