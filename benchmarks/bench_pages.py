@@ -18,7 +18,9 @@ migrates it and seeds, with ``bulk_create``:
 Then times every clinician page with Django's test ``Client`` (in this process, DEBUG off, so no query log
 slows it down) against that database: ``--repeats`` requests each after two warm-up requests, p50 / p95 / max
 server time in ms, and the SQL queries of one more request (Django's ``CaptureQueriesContext``); the first
-request's time is reported apart (it fills the caches: the clinic's MDC, the trend picture, the stability chart).
+request's time is reported apart (it fills the caches: the clinic's MDC, the trend picture, the stability chart,
+a PDF report's drawing). The reports are timed as a clinician downloads them again: the footer naming who produced
+the report and when is written on each download, the pages are drawn once per state of what they show.
 A page slower than 2 s a request is timed fewer times (at least 3, about 30 s in all).
 
     .venv/bin/python benchmarks/bench_pages.py [--patients 10000] [--visits 50000] [--repeats 50] \\

@@ -502,3 +502,20 @@ def test_a_footer_the_viewers_font_cannot_write_is_drawn_with_the_report(client,
         assert r.status_code == 200 and draws["pages"] > pages  # drawn in full each time
         text = pdf_text(r.content)
         assert "ucja" in text and "?ucja" not in text and "Produced by" in text
+
+
+@pytest.mark.django_db
+def test_a_report_in_an_embedded_font_gets_the_footer_written_on_too(client, charlie, reported_patient, draws):
+    patient, visits, comp = reported_patient
+    patient.name = "\u0141ucja \u017bak"
+    patient.save()
+    client.force_login(charlie)
+    url = f"/comparisons/{comp.pk}/report.pdf"
+    first = client.get(url).content
+    pages = draws["pages"]
+    again = client.get(url).content
+    assert draws["pages"] == pages  # from the cache
+    assert b"DejaVu" in again and b"/Helvetica" in again  # the pages embed their font; the footer is Helvetica's
+    assert page_count(again) == page_count(first)
+    assert all("Produced by charlie on " in t for t in _page_texts(again))
+    assert _cross_references_hold(again)["Author"] == "charlie"
