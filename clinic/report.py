@@ -521,9 +521,9 @@ def trend_picture(patient, until=None, scans=None) -> Picture | None:
         import tempfile
 
         with tempfile.TemporaryDirectory() as tmp:
-            drawn = pictures.trend_picture(series, Path(tmp) / "trend.png", mdc=mdc, figures=figures,
-                                           size_in=TREND_SIZE_IN)
-            png = Path(drawn).read_bytes()
+            out = pictures.trend_picture(series, Path(tmp) / "trend.png", mdc=mdc, figures=figures,
+                                         size_in=TREND_SIZE_IN)
+            png = Path(out).read_bytes()
         cache.set(key, png, REPORT_CACHE_SECONDS)
     return Picture(png, key=key)
 
