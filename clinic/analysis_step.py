@@ -19,8 +19,9 @@ from pathlib import Path
 from django.core.files import File
 from django.core.files.storage import default_storage
 from django.db import IntegrityError, transaction
+from django.db.models import Min
 
-from .models import Comparison, Reconstruction
+from .models import Camera, Comparison, Reconstruction
 
 
 def local_copy(field_or_name, dest: Path) -> Path:
@@ -86,7 +87,9 @@ def clinic_mdc(clinic, usable_only: bool = True) -> dict:
     if not usable_only:
         return mdc
     own = {k: {**v, "source": "clinic"} for k, v in usable_mdc(mdc).items()}
-    return {**scanner_mdc(), **own}
+    # the scanner's repeatability measured on simulated rigs like the clinic's coarsest (the pairs are pooled)
+    width = Camera.objects.filter(rig__clinic=clinic).aggregate(w=Min("width"))["w"]
+    return {**scanner_mdc(image_width=width), **own}
 
 
 def repeat_pairs(clinic) -> int:

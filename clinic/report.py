@@ -582,8 +582,8 @@ def _verdict(sheets: Sheets, h: dict):
     sheets.heading(title, 10.5)
     noise = h["noise"]
     if not noise["ready"] and h["judged"]:
-        rest = ("the scanner's own repeatability (same-day re-scans made when it was tested)" if h["scanner_mdc"]
-                else "too few of this clinic's same-day re-scans")
+        rest = ("the scanner's own repeatability (same-day re-scans of simulated patients, reconstructed on a "
+                "simulated rig like this clinic's)" if h["scanner_mdc"] else "too few of this clinic's same-day re-scans")
         sheets.para(f"The noise verdicts below rest on {rest}: the clinic has {noise['pairs']} of the "
                     f"{noise['needed']} re-scans needed for its own.", 8.5, color=WARN)
     elif not noise["ready"]:

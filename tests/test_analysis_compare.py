@@ -68,13 +68,16 @@ def test_mdc_from_repeat_pairs():
     mdc = mdc_from_index_pairs(pairs)
     sem = np.sqrt((0.4 ** 2 + 0.2 ** 2) / 4)
     assert mdc["hump_mm"]["sem"] == pytest.approx(sem)
-    assert mdc["hump_mm"]["mdc"] == pytest.approx(1.96 * np.sqrt(2) * sem)
+    assert mdc["hump_mm"]["mdc_estimate"] == pytest.approx(1.96 * np.sqrt(2) * sem)
+    # changes are judged against the upper bound of the estimate's 95 % interval (two pairs: x6.3)
+    assert mdc["hump_mm"]["mdc"] == pytest.approx(mdc["hump_mm"]["ci95"][1])
+    assert mdc["hump_mm"]["mdc"] == pytest.approx(6.29 * mdc["hump_mm"]["mdc_estimate"], rel=1e-3)
     ch = index_changes(pairs[0][0], {"hump_mm": 9.0, "lateral_deviation_mm": {"rms": 3.0, "max": 6.1}}, mdc)
     assert ch["hump_mm"]["exceeds_mdc"] is True
     assert ch["lateral_deviation_mm.max"]["exceeds_mdc"] is False
     assert exceeds_mdc(1.0, None) is None
     m2 = mdc_from_comparisons([{"signed_distance_mm": {"mean": 0.1}, "average_normal_distance_mm": 0.3}])
-    assert m2["signed_distance_mm.mean"]["mdc"] == pytest.approx(0.196)
+    assert m2["signed_distance_mm.mean"]["mdc_estimate"] == pytest.approx(0.196)
 
 
 def test_growth_and_indices_read_the_same_trunk_length_as_each_torsos_own_report(pair):

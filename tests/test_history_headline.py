@@ -17,7 +17,7 @@ def test_it_states_the_changes_and_says_no_verdict_is_possible_yet(client, charl
     import analysis.repeatability
 
     # no repeatability of the scanner's either (an installation without analysis/scanner_mdc.json)
-    monkeypatch.setattr(analysis.repeatability, "scanner_mdc", lambda path=None: {})
+    monkeypatch.setattr(analysis.repeatability, "scanner_mdc", lambda path=None, image_width=None: {})
     client.force_login(charlie)
     html = client.get(f"/patients/{patient_with_two_visits.pk}/").content.decode()
     head = _headline(html)

@@ -38,4 +38,4 @@ def test_a_side_that_appears_counts_from_zero():
 def test_the_mdc_of_a_signed_maximum_ignores_side_jumps():
     pairs = [(report(8.0, 7.9), report(7.9, 8.1)), (report(5.0, 1.0), report(5.2, 1.0))] * 3
     mdc = mdc_from_index_pairs(pairs)["surface_rotation_deg.max"]
-    assert mdc["n"] == 6 and mdc["mdc"] < 0.6
+    assert mdc["n"] == 6 and mdc["mdc_estimate"] < 0.6 and mdc["mdc"] < 1.2  # side jumps would give ~30 deg
