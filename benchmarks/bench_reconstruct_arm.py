@@ -2,18 +2,23 @@
 
     .venv/bin/python benchmarks/bench_reconstruct_arm.py --scenario bench-out/paper --capture visit0-a
 
-For every arm of the capture, with the true calibration at capture time
-(``truth/<capture>/calibration.json``) and, for arm A, once more with our own
-calibration (``--calibration``, default ``bench-out/paper-calibration.json``
-when present):
+For every arm of the capture, with our own calibration of the rig
+(``--calibration``, made by ``torsoscan calibrate`` from the scenario's
+test-field captures; ``--true-calibration`` for the capture-time truth
+instead): the points of every method are reconstructed in the calibration's
+frame and moved by the arm's true displacement since the calibration (the
+torso's registration estimates it; this benchmark is about one arm).
 
 - ours: ``reconstruction.reconstruct_arm``;
 - OpenCV's StereoSGBM on the same rectified neighbouring pairs (tuned: 3-way
   mode, block 5, P1/P2 = 8/32·block², left-right check ``disp12MaxDiff=1``,
   uniqueness 10, speckle filter), every second pixel of our region of
-  interest triangulated from its two rays;
-- pycolmap (``peer_pycolmap.py``): SIFT features, matching of the same
-  neighbouring pairs, ``triangulate_points`` with the known poses.
+  interest triangulated from its two rays, then our own surface filters
+  (``surface_from_intersection``: our ray test, precision, off the local
+  surface, islands); the unfiltered points are reported too;
+- pycolmap (``peer_pycolmap.py``): dense SIFT, matching of the same
+  neighbouring pairs, ``triangulate_points`` with the known poses; points of
+  tracks of three or more images (those of two-view tracks too, apart).
 
 Figures: distance of the points to the true body surface (RMS, 95th
 percentile, max), coverage (share of the torso area that two or more of the
@@ -42,7 +47,8 @@ from recon_engine.features import region_of_interest  # noqa: E402
 from recon_engine.formats import load_image, read_calibration, read_capture, read_rig  # noqa: E402
 from recon_engine.multiview import IntersectionConfig, intersect  # noqa: E402
 from recon_engine.parallel import reuse_freed_images  # noqa: E402
-from recon_engine.reconstruction import arm_cameras, reconstruct_arm  # noqa: E402
+from recon_engine.reconstruction import (ReconstructionConfig, arm_cameras, reconstruct_arm,  # noqa: E402
+                                         surface_from_intersection)
 
 from bench_simulate import machine  # noqa: E402
 
@@ -108,10 +114,16 @@ class Truth:
                 "density_per_cm2": float(np.isfinite(on_torso).sum() / max(area_cm2, 1e-9))}
 
 
-def sgbm_arm(images, cams, centre, radius_mm=400.0, step=2, block=5) -> tuple[np.ndarray, float]:
-    """StereoSGBM on each neighbouring rectified pair, triangulated; (points, seconds)."""
+def sgbm_arm(images, cams, centre, radius_mm=400.0, step=2, block=5, filters: ReconstructionConfig | None = None
+             ) -> tuple[np.ndarray, np.ndarray, float]:
+    """StereoSGBM on each neighbouring rectified pair, triangulated; ``(points, filtered, seconds)``.
+
+    ``filtered``: the same points after our own surface filters (``surface_from_intersection`` with our
+    intersection's ray test: imprecise points, points off the local surface, islands), pair by pair.
+    """
+    filters = filters or ReconstructionConfig()
     t0 = time.perf_counter()
-    pts = []
+    pts, kept = [], []
     for k in range(len(images) - 1):
         pair = rectify_pair(cams[k], cams[k + 1])
         L = pair.resample("left", images[k])
@@ -134,9 +146,22 @@ def sgbm_arm(images, cams, centre, radius_mm=400.0, step=2, block=5) -> tuple[np
         xl = np.column_stack([xx[ok], yy[ok]]).astype(float)
         xr = xl - np.column_stack([dd[ok], np.zeros(ok.sum())])
         obs = np.stack([pair.to_original("left", xl), pair.to_original("right", xr)], axis=1)
-        res = intersect([cams[k], cams[k + 1]], obs, IntersectionConfig(chi2_ray=1e12, min_angle_deg=0))
+        two = [cams[k], cams[k + 1]]
+        res = intersect(two, obs, IntersectionConfig(chi2_ray=1e12, min_angle_deg=0))
         pts.append(res["X"][res["valid"]])
-    return np.concatenate(pts), time.perf_counter() - t0
+        surface, _, _ = surface_from_intersection(intersect(two, obs, filters.intersection), two, filters)
+        kept.append(surface.points)
+    return np.concatenate(pts), np.concatenate(kept), time.perf_counter() - t0
+
+
+def arm_displacement(scenario: Path, capture: str, arm: str):
+    """``(R, t)``: how the arm was moved between the calibration and the capture (world frame, mm):
+    ``X_displaced = R @ X_calibrated + t``; the identity when the truth does not say."""
+    truth = json.loads((scenario / "truth" / capture / "truth.json").read_text())
+    d = (truth.get("arm_displacements") or {}).get(arm)
+    if d is None:
+        return np.eye(3), np.zeros(3)
+    return np.asarray(d["R"], float), np.asarray(d["t"], float)
 
 
 def main() -> int:
@@ -144,53 +169,72 @@ def main() -> int:
     ap.add_argument("--scenario", default="bench-out/paper")
     ap.add_argument("--capture", default="visit0-a")
     ap.add_argument("--calibration", default="bench-out/paper-calibration.json",
-                    help="our own calibration of the rig (arm A is also reconstructed with it)")
+                    help="our own calibration of the rig, from its test-field captures (every arm is reconstructed "
+                         "with it; its points are then moved by the arm's true displacement since the calibration, "
+                         "which the torso's registration estimates)")
+    ap.add_argument("--true-calibration", action="store_true",
+                    help="use the capture-time true calibration instead (say so in the table's header)")
     ap.add_argument("--arms", default="A,B,C,D")
+    ap.add_argument("--pycolmap-arms", default="A", help="arms pycolmap runs on (about 100 s per arm)")
     ap.add_argument("--no-pycolmap", action="store_true")
     ap.add_argument("--no-sgbm", action="store_true", help="ours (and pycolmap) only")
+    ap.add_argument("--json", default="bench-out/bench_reconstruct_arm.json")
     args = ap.parse_args()
     reuse_freed_images()  # as the command line does: the figures are the CLI's
     S = Path(args.scenario)
     rig = read_rig(S / "rig.json")
     truth_cal = read_calibration(S / "truth" / args.capture / "calibration.json")
+    if args.true_calibration:
+        cal = truth_cal
+    elif Path(args.calibration).exists():
+        cal = read_calibration(args.calibration)
+    else:
+        ap.error(f"--calibration {args.calibration}: no such file (make it with `torsoscan calibrate`, "
+                 "or pass --true-calibration)")
     cap = read_capture(S / "captures" / args.capture, rig)
     truth = Truth(S, args.capture)
-    centre = rig_centre(list(truth_cal.cameras.values()))
+    centre = rig_centre(list(cal.cameras.values()))
     out = {"machine": machine(), "command": " ".join(["benchmarks/bench_reconstruct_arm.py", *sys.argv[1:]]),
+           "calibration": "true, capture time" if args.true_calibration else f"ours: {args.calibration}",
            "arms": {}}
     total_ours = 0.0
     for arm in args.arms.split(","):
         ids = arm_cameras(rig, arm)
-        cams = [truth_cal.cameras[c] for c in ids]
+        cams = [cal.cameras[c] for c in ids]
+        seen_by = [truth_cal.cameras[c] for c in ids]  # what the arm's cameras saw at capture time
+        R, t = (np.eye(3), np.zeros(3)) if args.true_calibration else arm_displacement(S, args.capture, arm)
+
+        def placed(points):  # the calibration's frame -> the capture's (the arm moved since)
+            return np.asarray(points, float).reshape(-1, 3) @ R.T + t
+
         t0 = time.perf_counter()
-        surface, report = reconstruct_arm(cap, rig, truth_cal, arm)
+        surface, report = reconstruct_arm(cap, rig, cal, arm)
         t_ours = time.perf_counter() - t0
         total_ours += t_ours
-        row = {"ours": {**truth.figures(surface.points, cams), "seconds": t_ours,
+        row = {"ours": {**truth.figures(placed(surface.points), seen_by), "seconds": t_ours,
                         "rays_per_point": report["rays_per_point"]}}
         images = [load_image(cap, c, rig) for c in ids]
         if not args.no_sgbm:
-            sg, t_sg = sgbm_arm(images, cams, centre)
-            row["sgbm"] = {**truth.figures(sg, cams), "seconds": t_sg}
-        if not args.no_pycolmap and arm == "A":
+            raw, filtered, t_sg = sgbm_arm(images, cams, centre)
+            row["sgbm"] = {**truth.figures(placed(filtered), seen_by), "seconds": t_sg,
+                           "filters": "ours (precision, off the local surface, islands)"}
+            row["sgbm_unfiltered"] = truth.figures(placed(raw), seen_by)
+        if not args.no_pycolmap and arm in args.pycolmap_arms.split(","):
             from peer_pycolmap import pycolmap_arm
 
             t0 = time.perf_counter()
             pc = pycolmap_arm(images, cams, Path("bench-out") / f"pycolmap-{arm}")
-            row["pycolmap"] = {**truth.figures(pc["points"], cams), "seconds": time.perf_counter() - t0}
+            t_pc = time.perf_counter() - t0
+            three = pc["track_lengths"] >= 3
+            row["pycolmap"] = {**truth.figures(placed(pc["points"][three]), seen_by), "seconds": t_pc,
+                               "tracks": ">= 3 images"}
+            row["pycolmap_two_view_tracks_too"] = truth.figures(placed(pc["points"]), seen_by)
         out["arms"][arm] = row
         print(arm, json.dumps({k: {kk: (round(vv, 4) if isinstance(vv, float) else vv) for kk, vv in v.items()
                                    if kk != "rays_per_point"} for k, v in row.items()}), flush=True)
     out["four_arms_seconds_ours"] = total_ours
-    calib = Path(args.calibration)
-    if calib.exists():
-        own = read_calibration(calib)
-        # our calibration is of the rig before the arms swung: compare arm A, which does not move
-        surface, _ = reconstruct_arm(cap, rig, own, "A")
-        cams = [own.cameras[c] for c in arm_cameras(rig, "A")]
-        out["arm_A_own_calibration"] = truth.figures(surface.points, cams)
-        print("A with our calibration", out["arm_A_own_calibration"], flush=True)
-    dest = Path("bench-out/bench_reconstruct_arm.json")
+    dest = Path(args.json)
+    dest.parent.mkdir(parents=True, exist_ok=True)
     dest.write_text(json.dumps(out, indent=2))
     print(f"raw figures: {dest}")
     return 0

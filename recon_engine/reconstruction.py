@@ -153,6 +153,34 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     t2 = time.perf_counter()
     progress(f"arm {arm_id}: intersecting {len(tr['tracks'])} tracks")
     res = intersect(cams, tr["tracks"], cfg.intersection)
+    t3 = time.perf_counter()
+    surface, reason, sigma = surface_from_intersection(res, cams, cfg)
+    keep = reason == ""
+    t4 = time.perf_counter()
+    dropped = reason_counts(reason[~keep])
+    rays = res["rays"][keep]
+    report = {
+        "arm": arm_id, "cameras": used, "unusable_images": unusable,
+        "points": int(keep.sum()), "tracks": int(len(tr["tracks"])), "dropped": dropped,
+        "rays_per_point": {str(k): int((rays == k).sum()) for k in range(2, len(used) + 1)},
+        "removed_rays": int(np.isfinite(tr["tracks"][..., 0]).sum() - res["used"].sum()),
+        "sigma_mm_median": float(np.median(sigma[keep])) if keep.any() else None,
+        "patches": int(len(surface.faces)), "pairs": tr["pairs"],
+        "seconds": {"load": t1 - t0, "match_track": t2 - t1, "intersect": t3 - t2, "surface": t4 - t3,
+                    "total": t4 - t0},
+    }
+    return surface, report
+
+
+def surface_from_intersection(res: dict, cams: list, cfg: ReconstructionConfig) -> tuple:
+    """The arm's surface from intersected tracks, after the surface filters: imprecise points, points off the
+    local surface, islands of wrong matches that agree with each other, and the points that leaned on them.
+
+    ``res``: :func:`recon_engine.multiview.intersect`'s result for ``cams`` (world -> camera). Returns
+    ``(surface, reason, sigma)``: the kept points as a :class:`Surface` (mm, world frame), why each track was
+    dropped (``""``: kept) and each track's largest standard deviation (mm; inf where not intersected).
+    ``res`` is not modified.
+    """
     reason = res["reason"].copy()
     sigma = np.full(len(reason), np.inf)
     ok = reason == ""
@@ -169,7 +197,6 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     first = off_surface(res["X"][tested])
     reason[tested[first["off"]]] = "off the local surface"
     keep = reason == ""
-    t3 = time.perf_counter()
     surface = make_surface(res["X"][keep], cams, data={"sigma_mm": sigma[keep].astype(np.float32),
                                                        "rays": res["rays"][keep].astype(np.int32)})
     # precision along the skin's normal: what a normal distance to another arm's patch inherits (a point seen
@@ -206,20 +233,7 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
         drop[at[off]] = True
         surface = subset(surface, ~drop)
         keep = reason == ""
-    t4 = time.perf_counter()
-    dropped = reason_counts(reason[~keep])
-    rays = res["rays"][keep]
-    report = {
-        "arm": arm_id, "cameras": used, "unusable_images": unusable,
-        "points": int(keep.sum()), "tracks": int(len(tr["tracks"])), "dropped": dropped,
-        "rays_per_point": {str(k): int((rays == k).sum()) for k in range(2, len(used) + 1)},
-        "removed_rays": int(np.isfinite(tr["tracks"][..., 0]).sum() - res["used"].sum()),
-        "sigma_mm_median": float(np.median(sigma[keep])) if keep.any() else None,
-        "patches": int(len(surface.faces)), "pairs": tr["pairs"],
-        "seconds": {"load": t1 - t0, "match_track": t2 - t1, "intersect": t3 - t2, "surface": t4 - t3,
-                    "total": t4 - t0},
-    }
-    return surface, report
+    return surface, reason, sigma
 
 
 @dataclass(frozen=True)
