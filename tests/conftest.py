@@ -13,6 +13,10 @@ def _testfield_only(tmp_path_factory, name, captures=(), **kw):
     return out
 
 
+# the engine's tests read visit0-a; the simulator's own tests also the later visit (one scenario for both)
+TORSO_SCENARIO = preset("tiny", seed=0, captures=(("visit0-a", 0), ("visit1-a", 1)))
+
+
 @pytest.fixture(scope="session")
 def rig_session_1(tmp_path_factory):
     """Test-field captures of a tiny rig (3 poses), session 1, and one torso capture (visit0-a)."""
@@ -66,9 +70,9 @@ def calibration_disturbed(rig_disturbed):
 
 @pytest.fixture(scope="session")
 def torso_scenario(tmp_path_factory):
-    """A tiny scenario with one torso capture (visit0-a), arms displaced."""
+    """A tiny scenario with a torso capture (visit0-a) and a later visit's (visit1-a), arms displaced."""
     out = tmp_path_factory.mktemp("torso") / "scenario"
-    simulate(out, preset("tiny", seed=0), progress=lambda msg: None)
+    simulate(out, TORSO_SCENARIO, progress=lambda msg: None)
     return out
 
 

@@ -1,25 +1,20 @@
 """A simulated tiny scenario follows the spec and is faithful to its truth."""
 
 import json
-from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from recon_engine.formats import load_images, read_calibration, read_capture, read_rig, read_testfield
 from recon_engine.simulator.checks import marker_corner_errors, neighbour_ncc
-from recon_engine.simulator.config import preset
-from recon_engine.simulator.scenario import simulate
 
 
 @pytest.fixture(scope="session")
-def scenario(tmp_path_factory):
-    out = tmp_path_factory.mktemp("sim") / "scenario"
-    cfg = preset("tiny", seed=3)
-    cfg = replace(cfg, testfield=replace(cfg.testfield, poses=2),
-                  captures=(("visit0-a", 0), ("visit1-a", 1)))
-    simulate(out, cfg, progress=lambda msg: None)
-    return out, cfg
+def scenario(torso_scenario):
+    """The engine tests' tiny scenario (tests/conftest.py): three test-field poses, visit0-a and visit1-a."""
+    from tests.conftest import TORSO_SCENARIO
+
+    return torso_scenario, TORSO_SCENARIO
 
 
 def test_it_writes_every_file_in_the_spec_format(scenario):
@@ -29,7 +24,7 @@ def test_it_writes_every_file_in_the_spec_format(scenario):
     assert all(len(a.cameras) == 5 for a in rig.arms)
     tf = read_testfield(out / "testfield.json")
     assert len(tf.markers) == cfg.testfield.sides * cfg.testfield.rows * cfg.testfield.columns
-    for k in range(2):
+    for k in range(cfg.testfield.poses):
         cap = read_capture(out / "captures" / f"testfield-pose{k}", rig)
         assert cap.kind == "testfield" and cap.pose == k and cap.testfield == tf.name
         images = load_images(cap, rig)
@@ -44,7 +39,7 @@ def test_it_writes_every_file_in_the_spec_format(scenario):
         read_calibration(out / "truth" / name / "calibration.json")
         assert truth["landmarks"]["vertebra_prominens"] is not None
     scenario_json = json.loads((out / "truth" / "scenario.json").read_text())
-    assert scenario_json["config"]["seed"] == 3
+    assert scenario_json["config"]["seed"] == cfg.seed
 
 
 def test_each_camera_has_its_own_lens_and_an_off_centre_principal_point(scenario):
