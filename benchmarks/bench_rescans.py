@@ -1,0 +1,207 @@
+"""The scanner's repeatability on rendered, reconstructed same-day re-scans (issue 27 §4, issue 28 §5).
+
+``bench_bodies.py`` measures the analysis on the true surfaces sampled as the rig sees them. A clinic's
+re-scan goes through the whole chain instead: the patient sways and breathes, the rig's arms are moved,
+the images are rendered through the simulator's lenses, the engine reconstructs and registers the four
+arms with the rig's calibration (the one made on the test field, not the capture-time truth), and the
+reconstruction's coverage and density differ between the two scans. This script measures that chain:
+
+per body (drawn from the simulator's body family as in ``bench_bodies.draw_body``), one simulated scenario
+at ``--preset`` (default ``demo``: 720 x 480 px cameras) with a baseline and a same-day re-scan (and, for
+the held-out set, a later visit with +5 deg at the apex), each reconstructed by the engine
+(``reconstruct_torso``) and analysed as the clinic does (``analyse_torso``). A trunk landmark the analysis
+cannot find with confidence is marked as a clinician would on the visit page: at the simulator's true
+position plus a click's error (2 mm, 1-sigma per axis).
+
+Two sets, never mixed: ``tune`` (``--tune-seed``, default 100) gives the MDC of every index from its
+re-scans (``--write-mdc`` stores it in ``analysis/scanner_mdc.json`` under ``rigs[<preset>]``, beside the
+true-surface set); ``report`` (held out, ``--report-seed``, default 200) counts the re-scans and the
+progressions flagged against it.
+
+    .venv/bin/python benchmarks/bench_rescans.py --tune-bodies 10 --report-bodies 5 --write-mdc \\
+        --json docs/results/bench_rescans.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from analysis.indices import CORE_LANDMARKS, analyse_torso  # noqa: E402
+from analysis.repeatability import (INDEX_FIGURES, flatten, index_changes,  # noqa: E402
+                                    mdc_from_index_pairs)
+from analysis.torso import read_torso  # noqa: E402
+from bench_bodies import draw_body  # noqa: E402
+from recon_engine.formats import read_calibration, read_capture, read_rig  # noqa: E402
+from recon_engine.reconstruction import reconstruct_torso  # noqa: E402
+from recon_engine.results import write_torso  # noqa: E402
+from recon_engine.simulator.config import preset  # noqa: E402
+from recon_engine.simulator.scenario import simulate  # noqa: E402
+
+CLICK_SIGMA_MM = 2.0  # a clinician's mark on the torso picture, 1-sigma per axis
+
+
+def scenario_config(preset_name: str, seed: int, draw: dict, later_visit: bool):
+    """The simulator's scenario for one drawn body: a baseline and its same-day re-scan (and a later visit)."""
+    base = preset(preset_name, seed=seed)
+    subject = replace(base.subject, **draw["subject"], rotation_deg=draw["rotation_deg"],
+                      lateral_mm=draw["lateral_mm"], progression_deg=5.0, growth=0.0)
+    captures = (("visit0-a", 0), ("visit0-b", 0)) + ((("visit1-a", 1),) if later_visit else ())
+    # one test-field pose: its capture is not used (the rig's calibration is the simulated test-field one)
+    return replace(base, subject=subject, testfield=replace(base.testfield, poses=1), captures=captures)
+
+
+def analyse_capture(scenario: Path, name: str, work: Path, rng: np.random.Generator, log) -> dict:
+    """Reconstruct one capture with the rig's calibration and analyse it as the clinic does."""
+    rig = read_rig(scenario / "rig.json")
+    calibration = read_calibration(scenario / "truth" / "calibration.json")  # the test field's, not capture time's
+    capture = read_capture(scenario / "captures" / name, rig)
+    t0 = time.perf_counter()
+    result = reconstruct_torso(capture, rig, calibration)
+    seconds = time.perf_counter() - t0
+    out = work / name
+    if out.exists():
+        shutil.rmtree(out)
+    write_torso(out, result)
+    torso = read_torso(out / "torso.ply")
+    rep = analyse_torso(torso).report
+    marked = []
+    mark = [n for n in (rep.get("not_measurable") or {}).get("mark", []) if n in CORE_LANDMARKS]
+    if mark:
+        truth = json.loads((scenario / "truth" / name / "truth.json").read_text())["landmarks"]
+        marks = {n: (np.asarray(truth[n]) + rng.normal(0, CLICK_SIGMA_MM, 3)).tolist() for n in mark if truth.get(n)}
+        rep = analyse_torso(torso, landmarks=marks).report
+        marked = sorted(marks)
+    return {"report": rep, "marked": marked, "points": int(result["report"]["points"]),
+            "reconstruction_s": round(seconds, 1), "status": result["report"]["status"]}
+
+
+def run_set(label: str, seed: int, n_bodies: int, preset_name: str, out: Path, later_visit: bool, log) -> list:
+    rng = np.random.default_rng(seed)
+    bodies = []
+    for b in range(n_bodies):
+        draw = draw_body(rng)
+        cfg = scenario_config(preset_name, seed * 1000 + b, draw, later_visit)
+        scenario = out / f"{label}-{b:02d}" / "scenario"
+        t0 = time.perf_counter()
+        if not (scenario / "truth" / "scenario.json").exists():
+            simulate(scenario, cfg, force=True, progress=lambda m: None)
+        render_s = time.perf_counter() - t0
+        rec = {"body": b, "draw": draw, "render_s": round(render_s, 1), "scans": {}}
+        for name, _ in cfg.captures:
+            try:
+                rec["scans"][name] = analyse_capture(scenario, name, scenario.parent / "torsos", rng, log)
+            except ValueError as exc:  # a reconstruction or an analysis that declines: counted, not hidden
+                rec["scans"][name] = {"failed": str(exc)}
+        bodies.append(rec)
+        rot = {k: flatten(v["report"]).get("surface_rotation_deg.max") if "report" in v else None
+               for k, v in rec["scans"].items()}
+        log(f"  {label} body {b:2d} ({draw['subject']['stature_mm']:.0f} mm, w {draw['subject']['build_width']:.2f}, "
+            f"apex {draw['rotation_deg']:.1f} deg): rendered {render_s:.0f} s; rotation "
+            + ", ".join(f"{k} {v:+.1f}" if v is not None else f"{k} -" for k, v in rot.items())
+            + "; marked " + (", ".join(f"{k}: {'+'.join(v['marked'])}" for k, v in rec["scans"].items()
+                                       if v.get("marked")) or "none"))
+    return bodies
+
+
+def pairs_of(bodies, later: str):
+    return [(b["scans"]["visit0-a"]["report"], b["scans"][later]["report"]) for b in bodies
+            if "report" in b["scans"].get("visit0-a", {}) and "report" in b["scans"].get(later, {})]
+
+
+def summarise(bodies, mdc) -> dict:
+    rescans, later = pairs_of(bodies, "visit0-b"), pairs_of(bodies, "visit1-a")
+    out = {"bodies": len(bodies), "rescan_pairs": len(rescans), "progression_pairs": len(later),
+           "failed": {f"{b['body']}/{k}": v["failed"] for b in bodies for k, v in b["scans"].items() if "failed" in v},
+           "marked_by_clinician": sum(bool(v.get("marked")) for b in bodies for v in b["scans"].values()),
+           "indices": {}}
+    for k in INDEX_FIGURES:
+        m = (mdc.get(k) or {}).get("mdc")
+        ch = [c[k]["change"] for c in (index_changes(a, b, figures=(k,)) for a, b in rescans) if k in c]
+        row = {"mdc": m, "rescan_change_max_abs": float(np.max(np.abs(ch))) if ch else None}
+        for name, pairs in (("rescan", rescans), ("plus5", later)):
+            flags = [f for f in (index_changes(a, b, {k: m}).get(k, {}).get("exceeds_mdc") for a, b in pairs)
+                     if f is not None]
+            row[f"flagged_{name}"] = f"{sum(flags)}/{len(flags)}" if flags else None
+        out["indices"][k] = row
+    return out
+
+
+def write_mdc(mdc: dict, preset_name: str, source: str) -> Path:
+    """Store the rendered re-scans' MDC in ``analysis/scanner_mdc.json`` under ``rigs[preset]`` (the
+    true-surface set stays the file's ``mdc``)."""
+    path = ROOT / "analysis" / "scanner_mdc.json"
+    data = json.loads(path.read_text(encoding="utf-8")) if path.exists() else {}
+    rigs = data.setdefault("rigs", {})
+    size = preset(preset_name).camera
+    rigs[preset_name] = {"source": source, "image_size_px": [size.width, size.height],
+                         "pairs": max((v["n"] for v in mdc.values()), default=0), "mdc": mdc}
+    path.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+    return path
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--preset", default="demo", choices=["tiny", "demo", "paper"])
+    ap.add_argument("--tune-seed", type=int, default=100)
+    ap.add_argument("--report-seed", type=int, default=200)
+    ap.add_argument("--tune-bodies", type=int, default=10)
+    ap.add_argument("--report-bodies", type=int, default=5)
+    ap.add_argument("--out", default="bench-out/rescans", help="scenarios and torsos (kept: a re-run reuses them)")
+    ap.add_argument("--json", help="write the results here")
+    ap.add_argument("--write-mdc", action="store_true",
+                    help="store the tuning set's MDC in analysis/scanner_mdc.json for this preset's rigs")
+    args = ap.parse_args(argv)
+    out = Path(args.out) / args.preset
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    log = lambda m: print(m, flush=True)  # noqa: E731
+    log(f"tuning set: seed {args.tune_seed}, {args.tune_bodies} bodies, preset {args.preset}")
+    tune = run_set("tune", args.tune_seed, args.tune_bodies, args.preset, out, False, log)
+    mdc = mdc_from_index_pairs(pairs_of(tune, "visit0-b"))
+    log(f"held-out set: seed {args.report_seed}, {args.report_bodies} bodies")
+    report = run_set("report", args.report_seed, args.report_bodies, args.preset, out, True, log) \
+        if args.report_bodies else []
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                            text=True).stdout.strip()
+    res = {"command": " ".join(["benchmarks/bench_rescans.py", *(argv if argv is not None else sys.argv[1:])]),
+           "commit": commit, "machine": f"{platform.machine()}, {__import__('os').cpu_count()} cores",
+           "preset": args.preset, "seconds": round(time.perf_counter() - t0, 1),
+           "tune": summarise(tune, mdc), "report": summarise(report, mdc) if report else None,
+           "mdc": {k: {kk: v[kk] for kk in ("mdc", "mdc_estimate", "n", "ci95")} for k, v in mdc.items()},
+           "reconstruction_s": float(np.median([s["reconstruction_s"] for b in tune + report
+                                                 for s in b["scans"].values() if "reconstruction_s" in s]))}
+    log(f"{'index':34s} {'MDC':>7s} {'re-scan max':>11s} {'flagged re-scans':>16s} {'flagged +5 deg':>14s}")
+    for k in INDEX_FIGURES:
+        t = res["tune"]["indices"][k]
+        r = (res["report"] or {"indices": {}})["indices"].get(k, {})
+        m = t["mdc"]
+        log(f"{k:34s} {m if m is not None else float('nan'):7.2f} "
+            f"{r.get('rescan_change_max_abs') if r.get('rescan_change_max_abs') is not None else float('nan'):11.2f} "
+            f"{r.get('flagged_rescan') or '-':>16s} {r.get('flagged_plus5') or '-':>14s}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(res, indent=1) + "\n", encoding="utf-8")
+    if args.write_mdc:
+        path = write_mdc(mdc, args.preset, f"rendered, reconstructed same-day re-scans (benchmarks/bench_rescans.py, "
+                                           f"preset {args.preset}, seed {args.tune_seed}, {len(tune)} bodies, "
+                                           f"commit {commit})")
+        log(f"wrote {path}")
+    log(f"{res['seconds']:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
