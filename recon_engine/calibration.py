@@ -103,15 +103,33 @@ def check_captures(captures: list[Capture], rig: Rig, testfield: TestField) -> N
         raise ValueError("no capture of pose 0: pose 0 defines the calibration frame")
 
 
+def _image_map(fn, items: list) -> list:
+    """``fn`` over the images in threads (one per core the process may use), results in ``items``' order.
+
+    Decoding an image, OpenCV's marker detection and most of the edge fits release the GIL: two cores
+    measure a paper-scale rig's 80 images of 6 Mpx in little more than half the time of one."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from .parallel import cores
+
+    workers = min(cores(), len(items))
+    if workers <= 1:
+        return [fn(it) for it in items]
+    with ThreadPoolExecutor(workers) as pool:
+        return list(pool.map(fn, items))
+
+
 def remeasure_targets(targets: list, images: dict, cameras: dict, report: CalibrationReport,
                       cfg: CalibrationConfig) -> list:
     """The same detections measured again, edges undistorted with ``cameras``' IOPs."""
-    out = []
-    for it in targets:
-        if it.camera not in cameras or len(it.ids) == 0:
-            continue
+    todo = [it for it in targets if it.camera in cameras and len(it.ids)]
+
+    def remeasure(it):
         refined, rms, ok = refine_corners(images[(it.camera, it.pose)], it.coarse, cameras[it.camera])
-        good = ok & (rms < cfg.max_edge_rms_px)
+        return refined, ok & (rms < cfg.max_edge_rms_px)
+
+    out = []
+    for it, (refined, good) in zip(todo, _image_map(remeasure, todo)):
         report.drop(it.camera, "poor_edges", (~good).sum())
         out.append(ImageTargets(it.camera, it.pose, it.ids[good], refined[good], np.ones(good.sum()), it.coarse[good]))
     return out
@@ -121,31 +139,39 @@ def measure_targets(captures, rig: Rig, testfield: TestField, report: Calibratio
                     cfg: CalibrationConfig, cameras: dict | None = None, images: dict | None = None) -> list:
     """Markers of every image; ``cameras`` (IOPs) undistort the edges when given.
 
-    ``images`` caches decoded images by (camera, pose) between passes.
+    ``images`` caches decoded images by (camera, pose) between passes. The images are measured in threads;
+    what is dropped is counted in the images' order, so the report does not depend on the threads.
     """
     known = set(testfield.markers)
+    todo = [(cap, cam_id) for cap in captures for cam_id in cap.cameras]
+
+    def measure(item):
+        cap, cam_id = item
+        key = (cam_id, cap.pose)
+        image = images.get(key) if images is not None else None
+        if image is None:
+            image = load_image(cap, cam_id, rig)
+        drops = {}
+        ids, coarse = detect_markers(image, testfield.aruco_dictionary)
+        unknown = np.array([i not in known for i in ids], dtype=bool)
+        drops["unknown_id"] = unknown.sum()
+        ids, coarse = ids[~unknown], coarse[~unknown]
+        uniq, counts = np.unique(ids, return_counts=True)
+        dup = np.isin(ids, uniq[counts > 1])
+        drops["duplicate_id"] = dup.sum()
+        ids, coarse = ids[~dup], coarse[~dup]
+        refined, rms, ok = refine_corners(image, coarse, None if cameras is None else cameras.get(cam_id))
+        good = ok & (rms < cfg.max_edge_rms_px)
+        drops["poor_edges"] = (~good).sum()
+        return image, drops, ImageTargets(cam_id, cap.pose, ids[good], refined[good], np.ones(good.sum()), coarse[good])
+
     out = []
-    for cap in captures:
-        for cam_id in cap.cameras:
-            key = (cam_id, cap.pose)
-            if images is not None and key in images:
-                image = images[key]
-            else:
-                image = load_image(cap, cam_id, rig)
-                if images is not None:
-                    images[key] = image
-            ids, coarse = detect_markers(image, testfield.aruco_dictionary)
-            unknown = np.array([i not in known for i in ids], dtype=bool)
-            report.drop(cam_id, "unknown_id", unknown.sum())
-            ids, coarse = ids[~unknown], coarse[~unknown]
-            uniq, counts = np.unique(ids, return_counts=True)
-            dup = np.isin(ids, uniq[counts > 1])
-            report.drop(cam_id, "duplicate_id", dup.sum())
-            ids, coarse = ids[~dup], coarse[~dup]
-            refined, rms, ok = refine_corners(image, coarse, None if cameras is None else cameras.get(cam_id))
-            good = ok & (rms < cfg.max_edge_rms_px)
-            report.drop(cam_id, "poor_edges", (~good).sum())
-            out.append(ImageTargets(cam_id, cap.pose, ids[good], refined[good], np.ones(good.sum()), coarse[good]))
+    for (cap, cam_id), (image, drops, targets) in zip(todo, _image_map(measure, todo)):
+        if images is not None:
+            images[(cam_id, cap.pose)] = image
+        for reason, n in drops.items():
+            report.drop(cam_id, reason, n)
+        out.append(targets)
     return out
 
 
