@@ -176,6 +176,21 @@ TEMPLATES = [{
 DATABASES = {"default": database_from_url(os.environ.get("DATABASE_URL", "sqlite:///var/clinic.sqlite3"))}
 DEFAULT_AUTO_FIELD = "django.db.models.BigAutoField"
 
+
+def cache_from_url(url, name="CACHE_URL"):
+    """A Django CACHES entry: ``redis://host:port/db`` (shared by every process of the service: a drawn report
+    or chart serves all of them), or empty for each process's own memory (the embedded default)."""
+    if not url:
+        return {"BACKEND": "django.core.cache.backends.locmem.LocMemCache"}
+    scheme = urlparse(url).scheme
+    if scheme in ("redis", "rediss"):
+        return {"BACKEND": "django.core.cache.backends.redis.RedisCache", "LOCATION": url,
+                "TIMEOUT": envint("CACHE_SECONDS", 86400)}
+    raise ImproperlyConfigured(f"{name}={url!r}: unsupported scheme {scheme!r} (use redis, or leave it empty)")
+
+
+CACHES = {"default": cache_from_url(os.environ.get("CACHE_URL", ""))}
+
 LANGUAGE_CODE = "en-us"
 TIME_ZONE = os.environ.get("TIME_ZONE", "UTC")
 USE_TZ = True

@@ -36,3 +36,14 @@ def test_it_rejects_bad_booleans_and_integers(monkeypatch):
     monkeypatch.setenv("X_INT", "ten")
     with pytest.raises(ImproperlyConfigured, match="X_INT"):
         envint("X_INT", 1)
+
+
+def test_it_reads_a_redis_cache_url_and_keeps_each_process_own_cache_without_one():
+    from clinic.settings import cache_from_url
+
+    assert cache_from_url("")["BACKEND"].endswith("LocMemCache")
+    c = cache_from_url("redis://redis:6379/2")
+    assert c["BACKEND"].endswith("RedisCache") and c["LOCATION"] == "redis://redis:6379/2"
+    with pytest.raises(ImproperlyConfigured, match="CACHE_URL=.*memcached"):
+        cache_from_url("memcached://x:11211")
+
