@@ -250,10 +250,13 @@ def main(argv=None):
     for name in ("tune", "report"):
         log(f"\n{name}: " + json.dumps(result[name], indent=1))
     if args.write_mdc:
+        path = ROOT / "analysis" / "scanner_mdc.json"
+        # the reconstructed re-scans' sets (bench_rescans.py --write-mdc) stay
+        rigs = json.loads(path.read_text(encoding="utf-8")).get("rigs") if path.exists() else None
         out = {"source": "scanner repeatability: same-day re-scans of simulated bodies (benchmarks/bench_bodies.py, "
                          f"seed {args.tune_seed}, {len(repeat_pairs(tune))} pairs, commit {commit})",
-               "pairs": len(repeat_pairs(tune)), "mdc": {k: v for k, v in mdc.items()}}
-        (ROOT / "analysis" / "scanner_mdc.json").write_text(json.dumps(out, indent=1))
+               "pairs": len(repeat_pairs(tune)), "mdc": {k: v for k, v in mdc.items()}, **({"rigs": rigs} if rigs else {})}
+        path.write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1, default=float))
 
