@@ -170,6 +170,18 @@ def repeat_pairs(bodies):
             if "report" in b["scans"]["baseline"] and "report" in b["scans"]["rescan"]]
 
 
+def same_side_error(report: dict, key: str, truth: float):
+    """The measured size on the truth's side (+ right, - left) minus the truth, for a sided ``X.max``; else None."""
+    base, _, leaf = key.partition(".")
+    entry = report.get(base)
+    if leaf != "max" or not isinstance(entry, dict) or not ("right" in entry or "left" in entry):
+        return None
+    side = "right" if truth >= 0 else "left"
+    size = (entry.get(side) or {}).get("size")
+    size = float(size) if isinstance(size, (int, float)) else 0.0  # no extreme on that side: it read nothing there
+    return (size if side == "right" else -size) - truth
+
+
 def summarise(bodies, mdc) -> dict:
     out = {"bodies": len(bodies), "scans": 4 * len(bodies)}
     scans = [s for b in bodies for s in b["scans"].values()]
@@ -204,6 +216,15 @@ def summarise(bodies, mdc) -> dict:
         if err:
             rows["error"] = {"mean": float(np.mean(err)), "mean_abs": float(np.mean(np.abs(err))),
                              "max_abs": float(np.max(np.abs(err)))}
+        # a signed maximum whose two sides are nearly equal (an S curve) may be the other side's than the truth's:
+        # its size error is then taken on the truth's side (what the clinic reads there), its side choice apart
+        same = [e for e in (same_side_error(s["report"], k, s["truth"][k]) for s in measured
+                            if k in s.get("truth", {})) if e is not None]
+        if same:
+            rows["error_on_the_truths_side"] = {
+                "mean": float(np.mean(same)), "mean_abs": float(np.mean(np.abs(same))),
+                "max_abs": float(np.max(np.abs(same))),
+                "other_side_largest": f"{sum(np.sign(s['flat'].get(k, 0)) != np.sign(s['truth'][k]) for s in measured if k in s.get('truth', {}) and k in s['flat'])}/{len(same)}"}
         # the change as the clinic computes it (a signed maximum side by side: analysis.repeatability)
         ch = [c[k]["change"] for c in (index_changes(b["scans"]["baseline"]["report"], b["scans"]["rescan"]["report"],
                                                      figures=(k,))
