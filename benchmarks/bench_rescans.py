@@ -48,7 +48,7 @@ from bench_bodies import draw_body  # noqa: E402
 from recon_engine.formats import read_calibration, read_capture, read_rig  # noqa: E402
 from recon_engine.reconstruction import reconstruct_torso  # noqa: E402
 from recon_engine.results import write_torso  # noqa: E402
-from recon_engine.simulator.config import preset  # noqa: E402
+from recon_engine.simulator.config import PRESETS, preset  # noqa: E402
 from recon_engine.simulator.scenario import simulate  # noqa: E402
 
 CLICK_SIGMA_MM = 2.0  # a clinician's mark on the torso picture, 1-sigma per axis
@@ -157,7 +157,7 @@ def write_mdc(mdc: dict, preset_name: str, source: str) -> Path:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--preset", default="demo", choices=["tiny", "demo", "paper"])
+    ap.add_argument("--preset", default="demo", choices=list(PRESETS))
     ap.add_argument("--tune-seed", type=int, default=100)
     ap.add_argument("--report-seed", type=int, default=200)
     ap.add_argument("--tune-bodies", type=int, default=10)

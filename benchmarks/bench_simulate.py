@@ -23,7 +23,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from recon_engine.simulator.checks import marker_corner_errors, neighbour_ncc  # noqa: E402
-from recon_engine.simulator.config import preset  # noqa: E402
+from recon_engine.simulator.config import PRESETS, preset  # noqa: E402
 from recon_engine.simulator.scenario import simulate  # noqa: E402
 
 
@@ -42,7 +42,7 @@ def machine() -> str:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--preset", default="paper", choices=["tiny", "paper"])
+    ap.add_argument("--preset", default="paper", choices=list(PRESETS))
     ap.add_argument("--out", default=None)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=None)

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from .formats import FormatError
+from .simulator.config import PRESETS
 
 
 def _cmd_simulate(args) -> int:
@@ -103,8 +104,9 @@ DESCRIPTION = "The torsoscan command line: thin commands that call the engine's 
 def add_commands(sub) -> None:
     """Add the engine's commands to ``sub`` (an ``argparse`` subparsers action); each sets ``func``."""
     p = sub.add_parser("simulate", help="render a complete simulated scenario with its ground truth")
-    p.add_argument("--preset", choices=["tiny", "demo", "paper"], default="tiny",
-                   help="tiny: 480x320 px images for tests; paper: the paper's 3000x2000 px rig")
+    p.add_argument("--preset", choices=list(PRESETS), default="tiny",
+                   help="tiny: 480x320 px images for tests; demo: 720x480 (make demo); cheap: 1000x667 (a cheaper "
+                        "rig's cameras); paper: the paper's 3000x2000 px rig")
     p.add_argument("--out", required=True, help="scenario folder to write")
     p.add_argument("--seed", type=int, default=0, help="the installation: rig, lenses, test field, patient")
     p.add_argument("--session", type=int, default=0,

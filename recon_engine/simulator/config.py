@@ -174,7 +174,9 @@ def engine_lens(cfg: ScenarioConfig) -> ScenarioConfig:
 
 # reduced rigs: camera width x height (px) and the projector's (px), both about the paper's times width / 3000
 REDUCED = {"tiny": (480, 320, (168, 126)),  # the tests: a whole scenario in seconds
-           "demo": (720, 480, (252, 189))}  # make demo: denser torsos (about 3 mm between points) in minutes
+           "demo": (720, 480, (252, 189)),  # make demo: denser torsos (about 3 mm between points) in minutes
+           "cheap": (1000, 667, (350, 263))}  # a cheaper rig's cameras (issue 29 §2: coverage at 1000 x 667 px)
+PRESETS = ("paper", *REDUCED)
 
 
 def preset(name: str, **overrides) -> ScenarioConfig:
