@@ -42,7 +42,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from analysis.indices import CORE_LANDMARKS, analyse_torso  # noqa: E402
 from analysis.repeatability import (INDEX_FIGURES, flatten, index_changes,  # noqa: E402
-                                    mdc_from_index_pairs)
+                                    mdc_from_index_pairs, scanner_mdc)
 from analysis.torso import read_torso  # noqa: E402
 from bench_bodies import draw_body  # noqa: E402
 from recon_engine.formats import read_calibration, read_capture, read_rig  # noqa: E402
@@ -142,6 +142,21 @@ def summarise(bodies, mdc) -> dict:
     return out
 
 
+def clinic_mdc(mdc: dict, preset_name: str) -> dict:
+    """The MDC a clinic with this preset's rig would flag with (:func:`analysis.repeatability.scanner_mdc`): this
+    set as the preset's reconstructed set beside the file's true-surface set."""
+    import tempfile
+
+    path = ROOT / "analysis" / "scanner_mdc.json"
+    data = json.loads(path.read_text(encoding="utf-8")) if path.exists() else {}
+    size = preset(preset_name).camera
+    data["rigs"] = {preset_name: {"image_size_px": [size.width, size.height], "mdc": mdc}}
+    with tempfile.TemporaryDirectory() as tmp:
+        merged = Path(tmp) / "scanner_mdc.json"
+        merged.write_text(json.dumps(data), encoding="utf-8")
+        return scanner_mdc(merged, image_width=size.width)
+
+
 def write_mdc(mdc: dict, preset_name: str, source: str) -> Path:
     """Store the rendered re-scans' MDC in ``analysis/scanner_mdc.json`` under ``rigs[preset]`` (the
     true-surface set stays the file's ``mdc``)."""
@@ -181,21 +196,29 @@ def main(argv=None):
         if args.report_bodies else []
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                             text=True).stdout.strip()
+    clinic = clinic_mdc(mdc, args.preset)
     res = {"command": " ".join(["benchmarks/bench_rescans.py", *(argv if argv is not None else sys.argv[1:])]),
            "commit": commit, "machine": f"{platform.machine()}, {__import__('os').cpu_count()} cores",
            "preset": args.preset, "seconds": round(time.perf_counter() - t0, 1),
            "tune": summarise(tune, mdc), "report": summarise(report, mdc) if report else None,
+           # what a clinic with such a rig flags with: each figure the larger of this set and the true surfaces'
+           "report_against_the_clinics_mdc": summarise(report, clinic) if report else None,
            "mdc": {k: {kk: v[kk] for kk in ("mdc", "mdc_estimate", "n", "ci95")} for k, v in mdc.items()},
+           "clinics_mdc": {k: {"mdc": v["mdc"], "measured_on": v["measured_on"]} for k, v in clinic.items()},
            "reconstruction_s": float(np.median([s["reconstruction_s"] for b in tune + report
                                                  for s in b["scans"].values() if "reconstruction_s" in s]))}
-    log(f"{'index':34s} {'MDC':>7s} {'re-scan max':>11s} {'flagged re-scans':>16s} {'flagged +5 deg':>14s}")
+    log(f"{'index':34s} {'MDC':>7s} {'re-scan max':>11s} {'flagged re-scans':>16s} {'flagged +5 deg':>14s}"
+        f" {'clinic MDC':>10s} {'re-scans':>8s} {'+5 deg':>6s}")
+    nan = float("nan")
     for k in INDEX_FIGURES:
         t = res["tune"]["indices"][k]
         r = (res["report"] or {"indices": {}})["indices"].get(k, {})
-        m = t["mdc"]
-        log(f"{k:34s} {m if m is not None else float('nan'):7.2f} "
-            f"{r.get('rescan_change_max_abs') if r.get('rescan_change_max_abs') is not None else float('nan'):11.2f} "
-            f"{r.get('flagged_rescan') or '-':>16s} {r.get('flagged_plus5') or '-':>14s}")
+        c = (res["report_against_the_clinics_mdc"] or {"indices": {}})["indices"].get(k, {})
+        m, cm = t["mdc"], c.get("mdc")
+        log(f"{k:34s} {m if m is not None else nan:7.2f} "
+            f"{r.get('rescan_change_max_abs') if r.get('rescan_change_max_abs') is not None else nan:11.2f} "
+            f"{r.get('flagged_rescan') or '-':>16s} {r.get('flagged_plus5') or '-':>14s}"
+            f" {cm if cm is not None else nan:10.2f} {c.get('flagged_rescan') or '-':>8s} {c.get('flagged_plus5') or '-':>6s}")
     if args.json:
         Path(args.json).write_text(json.dumps(res, indent=1) + "\n", encoding="utf-8")
     if args.write_mdc:
