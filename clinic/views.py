@@ -7,6 +7,8 @@ forbids. Pages are plain HTML (a running job's page refreshes itself with a
 meta tag, no JavaScript needed).
 """
 
+import functools
+import hashlib
 import io
 import json
 import logging
@@ -178,8 +180,25 @@ def _repeat_state(clinic) -> str:
     return key
 
 
+@functools.cache
+def _mdc_code_state() -> str:
+    """The scanner's repeatability and the code that turns pairs into MDCs: a cache shared by the processes of two
+    releases (CACHE_URL) never serves the older one's MDC."""
+    from analysis import repeatability
+
+    from . import analysis_step
+
+    digest = hashlib.sha256()
+    for path in (repeatability.__file__, analysis_step.__file__,
+                 Path(repeatability.__file__).with_name("scanner_mdc.json")):
+        digest.update(Path(path).read_bytes() if Path(path).exists() else b"-")
+    return digest.hexdigest()[:16]
+
+
 def _cached_by_repeat_state(what, clinic, compute):
-    key = f"torsoscan:{what}:{_repeat_state(clinic)}"
+    # the clinic's cameras pick the scanner's MDC set (analysis_step.clinic_mdc); rigs change rarely, and the entry
+    # lives MDC_CACHE_SECONDS
+    key = f"torsoscan:{what}:{_mdc_code_state()}:{_repeat_state(clinic)}"
     value = cache.get(key)
     if value is None:
         value = compute(clinic)

@@ -111,7 +111,7 @@ def test_a_clinician_goes_through_the_clinic_day_at_both_widths(live_server, pat
             # the same-day re-scan, from the visit page
             page.goto(f"{base}/visits/{today.pk}/")
             with page.expect_navigation(timeout=300_000):
-                page.get_by_role("link", name="Compare this visit's 2 scans").click()
+                page.get_by_role("link", name="Compare this visit's 2 scans").click(timeout=300_000)
             page.wait_for_selector("#deformation", timeout=300_000)
             assert "re-scan" in page.locator("h1").first.inner_text().lower()
             step("05-same-day-rescan")
@@ -121,7 +121,7 @@ def test_a_clinician_goes_through_the_clinic_day_at_both_widths(live_server, pat
             page.select_option("select[name=earlier_scan]", scans.first.get_attribute("value"))
             page.select_option("select[name=later_scan]", scans.last.get_attribute("value"))
             with page.expect_navigation(timeout=300_000):
-                page.locator("form.compare button[type=submit]").click()
+                page.locator("form.compare button[type=submit]").click(timeout=300_000)
             page.wait_for_selector("#deformation", timeout=300_000)
             step("06-follow-up-against-baseline")
             # a landmark corrected on today's visit by clicking on the back picture, 15 mm above the automatic one
@@ -130,7 +130,9 @@ def test_a_clinician_goes_through_the_clinic_day_at_both_widths(live_server, pat
             x, y = click_at[int(picture.get_attribute("src").split("/reconstruction/")[1].split("/")[0])]
             page.check("#pick input[value=sacral_point]")
             with page.expect_navigation(timeout=300_000):
-                picture.click(position={"x": x, "y": y})
+                # the click waits for the navigation it starts: the landmark job runs in the request (embedded
+                # default), so give it the navigation's time, not the click's default 30 s
+                picture.click(position={"x": x, "y": y}, timeout=300_000)
             assert "Undo the last correction" in page.content() and "was undone" not in page.content()
             step("07-landmark-placed-on-the-picture")
             # the visit's report, downloaded
@@ -140,7 +142,7 @@ def test_a_clinician_goes_through_the_clinic_day_at_both_widths(live_server, pat
             assert pdf.startswith(b"%PDF") and len(pdf) > 10_000
             # undo, so the next width starts from the same landmarks
             with page.expect_navigation(timeout=300_000):
-                page.get_by_role("button", name="Undo the last correction").click()
+                page.get_by_role("button", name="Undo the last correction").click(timeout=300_000)
             page.close()
         browser.close()
     assert not serious, "serious accessibility violations:\n" + "\n".join(serious)
