@@ -83,6 +83,12 @@ class Command(BaseCommand):
         from recon_engine.simulator.config import preset as scenario_preset
         from recon_engine.simulator.scenario import simulate
 
+        from django.db import connection
+        from django.db.migrations.executor import MigrationExecutor
+
+        # before minutes of simulation: a database without its tables (or behind the code) fails at once
+        if MigrationExecutor(connection).migration_plan(MigrationExecutor(connection).loader.graph.leaf_nodes()):
+            raise CommandError("the database is not migrated: run `manage.py migrate` first (`make demo` does)")
         t0 = time.perf_counter()
         scenario = Path(out) / "scenario"
         if not (reuse and (scenario / "rig.json").exists()):
