@@ -64,7 +64,7 @@ def scenario_config(preset_name: str, seed: int, draw: dict, later_visit: bool):
     return replace(base, subject=subject, testfield=replace(base.testfield, poses=1), captures=captures)
 
 
-def analyse_capture(scenario: Path, name: str, work: Path, rng: np.random.Generator, log) -> dict:
+def analyse_capture(scenario: Path, name: str, work: Path, rng: np.random.Generator) -> dict:
     """Reconstruct one capture with the rig's calibration and analyse it as the clinic does."""
     out = work / name
     if (out / "torso.ply").exists() and (out / "report.json").exists():  # reconstructed by an earlier run
@@ -105,7 +105,7 @@ def run_set(label: str, seed: int, n_bodies: int, preset_name: str, out: Path, l
         rec = {"body": b, "draw": draw, "render_s": round(render_s, 1), "scans": {}}
         for name, _ in cfg.captures:
             try:
-                rec["scans"][name] = analyse_capture(scenario, name, scenario.parent / "torsos", rng, log)
+                rec["scans"][name] = analyse_capture(scenario, name, scenario.parent / "torsos", rng)
             except ValueError as exc:  # a reconstruction or an analysis that declines: counted, not hidden
                 rec["scans"][name] = {"failed": str(exc)}
         bodies.append(rec)
