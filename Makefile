@@ -19,8 +19,11 @@ demo: $(STAMP)
 	$(PY) manage.py migrate --noinput
 	$(PY) manage.py demo --out $(DEMO) --seed 11
 
+# The suite in TEST_WORKERS processes (pytest-xdist), each test file whole in one of them; the tiny
+# scenarios are simulated once for all (tests/conftest.py). The slowest tests are listed at the end.
+TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=15 tests
 
 venv: $(STAMP)
 

@@ -1,4 +1,7 @@
-"""Shared fixtures: simulated tiny installations, generated once per test session."""
+"""Shared fixtures: simulated tiny installations, generated once per test run (whatever the number of workers)."""
+
+import fcntl
+import os
 
 import pytest
 
@@ -6,11 +9,30 @@ from recon_engine.simulator.config import preset
 from recon_engine.simulator.scenario import simulate
 
 
-def _testfield_only(tmp_path_factory, name, captures=(), **kw):
-    cfg = preset("tiny", seed=11, captures=captures, **kw)
-    out = tmp_path_factory.mktemp(name) / "scenario"
-    simulate(out, cfg, progress=lambda msg: None)
+def simulated_once(tmp_path_factory, name, cfg):
+    """The scenario ``cfg`` simulated into a folder all of the run's workers share; the first one in simulates.
+
+    Under pytest-xdist each worker is its own process with its own session
+    fixtures: without this, both workers would render the same scenarios. A
+    lock on a file beside the folder makes the others wait for the first; the
+    simulator writes into a temporary folder and renames it, so a folder that
+    exists is whole.
+    """
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the run's folder, above each worker's own
+    shared = root / "simulated"
+    shared.mkdir(exist_ok=True)
+    out = shared / name
+    with open(shared / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not out.exists():
+            simulate(out, cfg, progress=lambda msg: None)
     return out
+
+
+def _testfield_only(tmp_path_factory, name, captures=(), **kw):
+    return simulated_once(tmp_path_factory, name, preset("tiny", seed=11, captures=captures, **kw))
 
 
 # the engine's tests read visit0-a; the simulator's own tests also the later visit (one scenario for both)
@@ -71,9 +93,7 @@ def calibration_disturbed(rig_disturbed):
 @pytest.fixture(scope="session")
 def torso_scenario(tmp_path_factory):
     """A tiny scenario with a torso capture (visit0-a) and a later visit's (visit1-a), arms displaced."""
-    out = tmp_path_factory.mktemp("torso") / "scenario"
-    simulate(out, TORSO_SCENARIO, progress=lambda msg: None)
-    return out
+    return simulated_once(tmp_path_factory, "torso", TORSO_SCENARIO)
 
 
 
