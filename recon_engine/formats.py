@@ -591,10 +591,12 @@ def to_float_image(img: np.ndarray) -> np.ndarray:
 
 
 def write_capture(dest, *, kind: str, rig: str, captured_at: str, images: dict, testfield: str | None = None,
-                  pose: int | None = None, extra: dict | None = None, ext: str = "png") -> Capture:
+                  pose: int | None = None, extra: dict | None = None, ext: str = "png",
+                  jpeg_quality: int = 95) -> Capture:
     """Write a capture bundle folder ``dest`` with ``images`` (camera -> array), atomically.
 
-    Refuses to replace an existing non-empty ``dest``.
+    ``ext`` is the images' format (png, tif, jpg); ``jpeg_quality`` (1-100) is
+    used for jpg. Refuses to replace an existing non-empty ``dest``.
     """
     import cv2
 
@@ -609,7 +611,8 @@ def write_capture(dest, *, kind: str, rig: str, captured_at: str, images: dict, 
         (tmp / "images").mkdir()
         entries = []
         for cam, arr in images.items():
-            ok, buf = cv2.imencode(f".{ext}", arr)
+            params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if ext.lower() in ("jpg", "jpeg") else []
+            ok, buf = cv2.imencode(f".{ext}", arr, params)
             if not ok:
                 raise ValueError(f"camera {cam!r}: cannot encode the image as {ext}")
             data = buf.tobytes()

@@ -139,6 +139,32 @@ class SceneConfig:
 
 
 @dataclass(frozen=True)
+class ConditionsConfig:
+    """What real patients and rigs bring beyond the clean capture (issue 29 §2); the defaults add nothing.
+
+    Each condition draws from its own random stream, so a seed's rig, body and
+    noise stay the same whichever conditions are on.
+    """
+
+    # --- skin (torso captures only)
+    specular: float = 0.0  # oily skin: share of the projectors' light reflected as a highlight (Blinn-Phong)
+    shininess: float = 30.0  # exponent of the highlight lobe (oily skin 20-60)
+    freckles_per_dm2: float = 0.0  # small brown spots, 1-3 mm across (a freckled child: 10-40)
+    moles: int = 0  # darker spots 3-6 mm across, over the torso
+    body_hair_per_cm2: float = 0.0  # dark strands 0.06 mm thick, 5-15 mm long (vellus hair is paler: 0)
+    tattoo: bool = False  # one dark design of about 120 x 90 mm on the back
+    underwear_top_mm: float | None = None  # top edge of a waistband above the sacral point (None: no underwear)
+    # --- light and optics
+    exposure_albedo: float = 0.0  # the skin albedo the rig's exposure is set for (0: for this patient's albedo)
+    exposure_ev: tuple = ()  # (camera, EV): that camera's exposure off by EV stops (+: brighter)
+    jpeg_quality: int = 0  # images stored as JPEG at this quality (0: PNG, lossless)
+    # --- motion
+    trigger_jitter_ms: float = 0.0  # 1-sigma of each camera's trigger time about the capture's
+    sway_speed_mm_s: float = 5.0  # the upper body's speed in quiet standing (random horizontal direction)
+    breathing_period_s: float = 4.0  # a child's breath at rest (15 per minute)
+
+
+@dataclass(frozen=True)
 class ScenarioConfig:
     """Everything that defines one simulated scenario; the seed makes it repeatable."""
 
@@ -152,6 +178,8 @@ class ScenarioConfig:
     subject: SubjectConfig = field(default_factory=SubjectConfig)
     testfield: TestFieldConfig = field(default_factory=TestFieldConfig)
     scene: SceneConfig = field(default_factory=SceneConfig)
+    conditions: ConditionsConfig = field(default_factory=ConditionsConfig)
+    torso_cameras: tuple = ()  # cameras rendered in torso captures (the others are missing); empty: every camera
     # torso captures: (name, visit index); visit 0 is the baseline, visit 1 the
     # later visit with progression. Two captures of one visit differ in sway and breathing.
     captures: tuple = (("visit0-a", 0), ("visit0-b", 0), ("visit1-a", 1))

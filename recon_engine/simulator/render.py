@@ -45,6 +45,8 @@ class Surface:
     albedo: np.ndarray | None = None  # per vertex; None for the tower (printed)
     tower: Tower | None = None
     pose: tuple | None = None  # tower: (R, t) with X_world = R @ X_tower + t
+    marks: object | None = None  # skin: a skin.SkinMarks multiplying the albedo, looked up at the rest position
+    rest: np.ndarray | None = None  # skin with marks: each vertex's position on the rest body (mm)
     normals: np.ndarray = field(init=False)
     triangle_albedo: np.ndarray | None = field(init=False, default=None)
 
@@ -134,6 +136,8 @@ class Scene:
                 n = np.einsum("ij,ijk->ik", w, s.normals[tri])
                 normal[sel] = n / np.linalg.norm(n, axis=1, keepdims=True)
                 albedo[sel] = np.einsum("ij,ij->i", w, s.albedo[tri])
+                if s.marks is not None:
+                    albedo[sel] *= s.marks.sample(np.einsum("ij,ijk->ik", w, s.rest[tri]))
             else:
                 albedo[sel] = s.triangle_albedo[pid[sel]]
         # shade the side the ray hits (back faces of thin shells)
@@ -166,9 +170,22 @@ class PreparedLighting:
         self.subsurface_mm = subsurface_mm
         self.levels = [_pattern_levels(p.pattern, PATTERN_SIGMAS) for p in lighting.projectors]
 
-    def irradiance(self, scene: Scene, pos, normal, valid, kinds) -> np.ndarray:
+    def irradiance(self, scene: Scene, pos, normal, valid, kinds, viewpoint=None, specular: float = 0.0,
+                   shininess: float = 30.0):
+        """Irradiance at the hits, and the radiance of the projectors' highlights on skin seen from ``viewpoint``.
+
+        The highlight is Blinn-Phong's normalised lobe (``shininess``) carrying
+        the share ``specular`` of a projector's light that the skin's oily film
+        reflects; it is added to albedo x irradiance, and is zero where
+        ``specular`` is 0.
+
+        Returns
+        -------
+        E, S : (N,) arrays, irradiance and highlight radiance (same units as albedo x irradiance)
+        """
         L = self.lighting
         E = np.where(valid, L.ambient, 0.0)
+        S = np.zeros(len(E))
         if L.key:
             kd = np.asarray(L.key_direction, float)
             kd /= np.linalg.norm(kd)
@@ -213,11 +230,23 @@ class PreparedLighting:
                 value[use] += weight * sample
             emitted = pc.black_level + (1.0 - pc.black_level) * value
             E[idx] += pc.power * emitted * cosine * (pc.distance_mm / d) ** 2
-        return E
+            if specular > 0 and viewpoint is not None:
+                incident = pc.power * emitted * (pc.distance_mm / d) ** 2
+                skin = kinds[idx]
+                to_light = -rel[lit] / d[:, None]
+                to_eye = np.asarray(viewpoint, np.float32) - pos32[sel[lit]]
+                to_eye /= np.linalg.norm(to_eye, axis=1, keepdims=True)
+                half = to_light + to_eye
+                half /= np.linalg.norm(half, axis=1, keepdims=True)
+                n_h = np.clip(np.einsum("ij,ij->i", nrm32[sel[lit]], half), 0.0, None)
+                lobe = (shininess + 8.0) / 8.0 * n_h ** shininess
+                S[idx] += np.where(skin, specular * incident * lobe * cosine, 0.0)
+        return E, S
 
 
 def render(scene: Scene, camera: Camera, lighting: PreparedLighting, cc: CameraConfig,
-           rng: np.random.Generator, exposure: float, prnu_seed: int = 0, lens: Lens | None = None):
+           rng: np.random.Generator, exposure: float, prnu_seed: int = 0, lens: Lens | None = None,
+           specular: float = 0.0, shininess: float = 30.0):
     """Render one 8-bit image (height, width) of ``scene`` seen by ``camera``.
 
     Parameters
@@ -230,6 +259,8 @@ def render(scene: Scene, camera: Camera, lighting: PreparedLighting, cc: CameraC
         five OpenCV terms as a :class:`Lens`).
     exposure : float
         Radiance (albedo x irradiance) that fills 80% of the full well.
+    specular, shininess : float
+        Oily skin's highlights of the projectors' light (:meth:`PreparedLighting.irradiance`); 0: matte skin.
     prnu_seed : int
         Seeds the camera's fixed photo-response non-uniformity.
 
@@ -265,8 +296,8 @@ def render(scene: Scene, camera: Camera, lighting: PreparedLighting, cc: CameraC
         hits = scene.cast(camera.C, dirs)
         pos, normal, albedo, valid = scene.shade_inputs(hits, camera.C, dirs)
         is_skin = valid & kinds[np.where(valid, hits["geometry_ids"], 0).astype(np.int64)]
-        E = lighting.irradiance(scene, pos, normal, valid, is_skin)
-        L = albedo * E
+        E, S = lighting.irradiance(scene, pos, normal, valid, is_skin, camera.C, specular, shininess)
+        L = albedo * E + S
         z = np.where(valid, hits["t_hit"] * d_cam[:, 2], 1e5)
         shape = (r1 - r0, ss, W, ss)
         radiance[r0:r1] = L.reshape(shape).mean(axis=(1, 3))

@@ -22,6 +22,7 @@ import os
 import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +32,7 @@ from .bodies import Posture, curve_profiles, load_body, pose_body, skin_albedo
 from .config import ScenarioConfig
 from .render import Lighting, PreparedLighting, Scene, Surface, render
 from .rig import apply_lens_changes, displace, draw_arm_displacements, make_rig, rotation_about
+from .skin import clothe, make_skin_marks
 from .testfield import Tower, draw_poses, make_tower, surveyed
 
 CAPTURED_AT = "2026-11-22T09:00:00+00:00"
@@ -108,13 +110,38 @@ def _landmark(scene: Scene, spine_point, posterior) -> list:
 
 
 def _render_group(job):
-    """Render some cameras of one capture (runs in a worker process)."""
-    surfaces, lighting, subsurface, cameras, lenses, cc, exposure, seeds, prnu_seeds = job
-    scene = Scene(surfaces)
+    """Render some cameras of one capture (runs in a worker process).
+
+    ``surfaces`` is one list for every camera, or camera -> list when the
+    cameras saw the subject at different instants (trigger jitter).
+    """
+    surfaces, lighting, subsurface, cameras, lenses, cc, exposures, seeds, prnu_seeds, specular = job
     prepared = PreparedLighting(lighting, subsurface)
-    return {c: render(scene, cam, prepared, cc, np.random.default_rng(seeds[c]), exposure,
-                      prnu_seed=prnu_seeds[c], lens=lenses[c])[0]
+    shared = Scene(surfaces) if isinstance(surfaces, list) else None
+    return {c: render(shared or Scene(surfaces[c]), cam, prepared, cc, np.random.default_rng(seeds[c]),
+                      exposures[c], prnu_seed=prnu_seeds[c], lens=lenses[c], specular=specular[0],
+                      shininess=specular[1])[0]
             for c, cam in cameras.items()}
+
+
+def _at_trigger(body, cfg: ScenarioConfig, posture: Posture, cameras, rng: np.random.Generator) -> dict:
+    """Camera -> the posed vertices at its own trigger instant (``trigger_jitter_ms`` about the capture's).
+
+    Between the instants the subject sways (a straight drift at
+    ``sway_speed_mm_s``) and breathes (a sine of ``breathing_period_s`` through
+    the capture's breathing phase, rising or falling at random).
+    """
+    cond = cfg.conditions
+    heading = rng.uniform(0, 2 * np.pi)
+    velocity = cond.sway_speed_mm_s * np.array([np.cos(heading), np.sin(heading), 0.0])  # mm/s
+    b = np.clip(posture.breathing, -0.5, 0.5)
+    breathing_rate = rng.choice([-1.0, 1.0]) * 2 * np.pi / cond.breathing_period_s * np.sqrt(0.25 - b ** 2)  # 1/s
+    out = {}
+    for c in cameras:
+        dt = rng.normal(0.0, cond.trigger_jitter_ms) / 1000.0  # s
+        moved = replace(posture, breathing=posture.breathing + breathing_rate * dt, t=posture.t + velocity * dt)
+        out[c] = pose_body(body, cfg.subject, moved)[0]
+    return out
 
 
 def simulate(out: str | Path, cfg: ScenarioConfig, force: bool = False, progress=print,
@@ -154,8 +181,14 @@ def _simulate(out, cfg, force, progress, n_workers, pool) -> dict:
     rng_poses, rng_arms, rng_pose, rng_place = (
         np.random.default_rng(s) for s in np.random.SeedSequence([cfg.seed, 1000 + cfg.session]).spawn(4))
 
-    body = load_body(cfg.subject)
+    cond = cfg.conditions
+    # conditions draw from streams of their own: the marks belong to the patient (the seed), the trigger
+    # instants to the session
+    rng_marks = np.random.default_rng(np.random.SeedSequence([cfg.seed, 3000]))
+    rng_jitter = np.random.default_rng(np.random.SeedSequence([cfg.seed, 4000 + cfg.session]))
+    body = clothe(load_body(cfg.subject), cond)
     albedo = skin_albedo(body.vertices, cfg.subject, rng_body)
+    marks = make_skin_marks(body, cond, rng_marks, cfg.subject.albedo)
     centre_z = 0.5 * (body.z_sacrum + body.z_c7)
     truth = apply_lens_changes(make_rig(cfg, rng_rig, centre_z), cfg.lens_changes)
     tower = make_tower(cfg.testfield, rng_tf)
@@ -178,21 +211,30 @@ def _simulate(out, cfg, force, progress, n_workers, pool) -> dict:
                "captures": [], "timings_s": {}}
     cc = cfg.camera
 
-    def render_capture(name, surfaces, lighting, subsurface, cameras, exposure, capture_kw):
+    ev = dict(cond.exposure_ev)
+    unknown = sorted(set(ev) - set(rig.camera_ids))
+    if unknown:
+        raise ValueError(f"conditions.exposure_ev: no camera {', '.join(unknown)} in the rig")
+    image_kw = dict(ext="jpg", jpeg_quality=cond.jpeg_quality) if cond.jpeg_quality else {}
+
+    def render_capture(name, surfaces, lighting, subsurface, cameras, exposure, capture_kw, only=(), specular=(0.0, 30.0)):
         t0 = time.perf_counter()
         capture_index = len(summary["captures"])
-        ids = rig.camera_ids
+        all_ids = rig.camera_ids
+        ids = [c for c in all_ids if not only or c in only]
         groups = [ids[k::n_workers] for k in range(n_workers)]
-        jobs = [(surfaces, lighting, subsurface, {c: cameras[c] for c in g}, {c: truth.lenses[c] for c in g}, cc, exposure,
-                 {c: (cfg.seed, cfg.session, 1, capture_index, ids.index(c)) for c in g},
-                 {c: (cfg.seed, 2, ids.index(c)) for c in g}) for g in groups if g]
+        jobs = [(surfaces if isinstance(surfaces, list) else {c: surfaces[c] for c in g}, lighting, subsurface,
+                 {c: cameras[c] for c in g}, {c: truth.lenses[c] for c in g}, cc,
+                 {c: exposure / 2.0 ** ev.get(c, 0.0) for c in g},  # +1 EV: twice the light per DN
+                 {c: (cfg.seed, cfg.session, 1, capture_index, all_ids.index(c)) for c in g},
+                 {c: (cfg.seed, 2, all_ids.index(c)) for c in g}, specular) for g in groups if g]
         images = {}
         for part in (pool.map(_render_group, jobs) if pool else map(_render_group, jobs)):
             images.update(part)
         images = {c: images[c] for c in ids}
         dest = tmp / "captures" / name
         dest.parent.mkdir(parents=True, exist_ok=True)
-        write_capture(dest, rig=rig.serial, captured_at=CAPTURED_AT, images=images, **capture_kw)
+        write_capture(dest, rig=rig.serial, captured_at=CAPTURED_AT, images=images, **capture_kw, **image_kw)
         dt = time.perf_counter() - t0
         summary["timings_s"][name] = round(dt, 2)
         summary["captures"].append(f"captures/{name}")
@@ -202,7 +244,7 @@ def _simulate(out, cfg, force, progress, n_workers, pool) -> dict:
     # --- test field captures: room light, projectors off
     tf_cfg = cfg.testfield
     tf_light = Lighting(ambient=tf_cfg.ambient, key=tf_cfg.key_light)
-    for k, pose in enumerate(poses):
+    for k, pose in enumerate(poses if tf_cfg.poses else []):
         render_capture(f"testfield-pose{k}", [_tower_surface(tower, pose), *background], tf_light, 0.0,
                        truth.cameras, 0.6, dict(kind="testfield", testfield=testfield.name, pose=k))
 
@@ -215,14 +257,21 @@ def _simulate(out, cfg, force, progress, n_workers, pool) -> dict:
             placements[visit] = (rotation_about([0, 0, 1], yaw), shift)
         posture = draw_posture(cfg, rng_pose, visit, placements[visit])
         V, spine = pose_body(body, cfg.subject, posture)
-        skin = Surface("skin", V, body.triangles, albedo=albedo)
+        skin = Surface("skin", V, body.triangles, albedo=albedo, marks=marks, rest=body.vertices)
         scene = Scene([skin, *background])  # for the landmarks below
+        seen = [skin, *background]
+        if cond.trigger_jitter_ms > 0:
+            shown = [c for c in rig.camera_ids if not cfg.torso_cameras or c in cfg.torso_cameras]
+            seen = {c: [Surface("skin", Vc, body.triangles, albedo=albedo, marks=marks, rest=body.vertices),
+                        *background] for c, Vc in _at_trigger(body, cfg, posture, shown, rng_jitter).items()}
         displacement = draw_arm_displacements(cfg, rng_arms, truth)
         cameras, projectors = displace(truth, displacement)
         lighting = Lighting(ambient=cfg.scene.torso_ambient, projectors=tuple(projectors[a.id] for a in rig.arms),
                             projector_cfg=cfg.projector)
-        render_capture(name, [skin, *background], lighting, cfg.subject.subsurface_mm, cameras,
-                       cfg.subject.albedo * (cfg.projector.power + cfg.scene.torso_ambient), dict(kind="torso"))
+        render_capture(name, seen, lighting, cfg.subject.subsurface_mm, cameras,
+                       (cond.exposure_albedo or cfg.subject.albedo) * (cfg.projector.power + cfg.scene.torso_ambient),
+                       dict(kind="torso"),
+                       only=cfg.torso_cameras, specular=(cond.specular, cond.shininess))
         tdir = tmp / "truth" / name
         tdir.mkdir(parents=True)
         write_calibration(tdir / "calibration.json", _calibration(rig.serial, cameras, "testfield pose 0", truth.lenses))
