@@ -178,7 +178,11 @@ def scanner_mdc(path=None, image_width: int | None = None) -> dict:
     path = Path(path) if path else Path(__file__).with_name("scanner_mdc.json")
     if not path.exists():
         return {}
-    data = json.loads(path.read_text(encoding="utf-8"))
+    return scanner_mdc_from(json.loads(path.read_text(encoding="utf-8")), image_width)
+
+
+def scanner_mdc_from(data: dict, image_width: int | None = None) -> dict:
+    """:func:`scanner_mdc` of the file's content ``data`` (``{"mdc": …, "rigs": …}``)."""
 
     def usable(entries: dict, measured_on: str) -> dict:
         out = {}

@@ -42,7 +42,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from analysis.indices import CORE_LANDMARKS, analyse_torso  # noqa: E402
 from analysis.repeatability import (INDEX_FIGURES, flatten, index_changes,  # noqa: E402
-                                    mdc_from_index_pairs, scanner_mdc)
+                                    mdc_from_index_pairs, scanner_mdc_from)
 from analysis.torso import read_torso  # noqa: E402
 from bench_bodies import draw_body  # noqa: E402
 from recon_engine.formats import read_calibration, read_capture, read_rig  # noqa: E402
@@ -145,16 +145,11 @@ def summarise(bodies, mdc) -> dict:
 def clinic_mdc(mdc: dict, preset_name: str) -> dict:
     """The MDC a clinic with this preset's rig would flag with (:func:`analysis.repeatability.scanner_mdc`): this
     set as the preset's reconstructed set beside the file's true-surface set."""
-    import tempfile
-
     path = ROOT / "analysis" / "scanner_mdc.json"
     data = json.loads(path.read_text(encoding="utf-8")) if path.exists() else {}
     size = preset(preset_name).camera
     data["rigs"] = {preset_name: {"image_size_px": [size.width, size.height], "mdc": mdc}}
-    with tempfile.TemporaryDirectory() as tmp:
-        merged = Path(tmp) / "scanner_mdc.json"
-        merged.write_text(json.dumps(data), encoding="utf-8")
-        return scanner_mdc(merged, image_width=size.width)
+    return scanner_mdc_from(data, image_width=size.width)
 
 
 def write_mdc(mdc: dict, preset_name: str, source: str) -> Path:

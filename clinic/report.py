@@ -359,21 +359,15 @@ class Sheets:
 @functools.lru_cache(maxsize=1)
 def _code_state() -> str:
     """The code a report rests on (this module, the words, the pages' helpers, the trend's drawing, the changes'
-    verdicts, matplotlib's version): a cache shared by processes of two releases (Redis) never serves the older
-    one's drawing."""
+    verdicts) and matplotlib's version."""
     import matplotlib
 
-    from analysis import pictures
-
-    from analysis import indices, repeatability
+    from analysis import indices, pictures, repeatability
 
     from . import views
 
-    digest = hashlib.sha256(matplotlib.__version__.encode())
-    for path in (__file__, labels.__file__, views.__file__, pictures.__file__, indices.__file__,
-                 repeatability.__file__):
-        digest.update(Path(path).read_bytes())
-    return digest.hexdigest()[:16]
+    return views.files_digest((__file__, labels.__file__, views.__file__, pictures.__file__, indices.__file__,
+                               repeatability.__file__), salt=matplotlib.__version__)
 
 
 # --- the per-download footer, written on a report drawn once -------------------------------------------------------

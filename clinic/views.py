@@ -181,18 +181,25 @@ def _repeat_state(clinic) -> str:
 
 
 @functools.cache
+@functools.lru_cache(maxsize=16)
+def files_digest(paths: tuple, salt: str = "") -> str:
+    """A short digest of ``salt`` and the bytes of ``paths`` (a missing file counts as "-"): part of a cache key, so
+    that a cache shared by the processes of two releases (CACHE_URL) never serves what the older code computed.
+    Read once per process: a release is a new process."""
+    digest = hashlib.sha256(salt.encode())
+    for path in paths:
+        digest.update(Path(path).read_bytes() if Path(path).exists() else b"-")
+    return digest.hexdigest()[:16]
+
+
 def _mdc_code_state() -> str:
-    """The scanner's repeatability and the code that turns pairs into MDCs: a cache shared by the processes of two
-    releases (CACHE_URL) never serves the older one's MDC."""
+    """The scanner's repeatability and the code that turns pairs into MDCs."""
     from analysis import repeatability
 
     from . import analysis_step
 
-    digest = hashlib.sha256()
-    for path in (repeatability.__file__, analysis_step.__file__,
-                 Path(repeatability.__file__).with_name("scanner_mdc.json")):
-        digest.update(Path(path).read_bytes() if Path(path).exists() else b"-")
-    return digest.hexdigest()[:16]
+    return files_digest((repeatability.__file__, analysis_step.__file__,
+                         str(Path(repeatability.__file__).with_name("scanner_mdc.json"))))
 
 
 def _cached_by_repeat_state(what, clinic, compute):

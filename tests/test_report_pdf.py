@@ -405,6 +405,11 @@ def test_a_second_download_is_served_from_the_cache_with_its_own_footer(client, 
         assert draws == drawn
 
 
+def _new_picture(name, label) -> dict:
+    """A picture stored again under a name of its own, as analysis_step stores a redrawn one."""
+    return {name: default_storage.save(f"pictures/report-1-{name}-2.png", ContentFile(_png(f"{name}, {label}")))}
+
+
 @pytest.mark.django_db
 def test_a_report_is_never_stale_after_a_change_it_shows(client, charlie, reported_patient, draws):
     from clinic.models import Reconstruction
@@ -426,9 +431,7 @@ def test_a_report_is_never_stale_after_a_change_it_shows(client, charlie, report
     assert f"{hump:.1f} mm" in text
     rec.indices = {**rec.indices, "hump_mm": 41.7,
                    "landmarks": {**rec.indices["landmarks"], "vertebra_prominens": {"confidence": "clinician"}}}
-    # (each new picture under a name of its own, as analysis_step stores them)
-    rec.pictures = {**rec.pictures, "torso-back": default_storage.save("pictures/report-1-torso-back-2.png",
-                                                                       ContentFile(_png("torso-back, corrected")))}
+    rec.pictures = {**rec.pictures, **_new_picture("torso-back", "corrected")}
     rec.save()
     pages, trends = draws["pages"], draws["trends"]
     text = _get_pdf(client, url)
@@ -444,8 +447,7 @@ def test_a_report_is_never_stale_after_a_change_it_shows(client, charlie, report
     assert _get_pdf(client, url) == text and (draws["pages"], draws["trends"]) == (pages, trends)
     assert draws["layouts"] == layouts + 1
     # the asymmetry map alone drawn again: a new drawing of the report
-    rec.pictures = {**rec.pictures, "asymmetry": default_storage.save("pictures/report-1-asymmetry-2.png",
-                                                                      ContentFile(_png("asymmetry, redrawn")))}
+    rec.pictures = {**rec.pictures, **_new_picture("asymmetry", "redrawn")}
     rec.save()
     _get_pdf(client, url)
     assert draws["pages"] > pages and draws["trends"] == trends
