@@ -446,7 +446,7 @@ def _worklist(user, today) -> dict:
     Overdue: the next visit due date set at the patient's latest visit has passed; where none was set, the
     latest visit is more than ``FOLLOW_UP_MONTHS`` old. A patient with a visit booked from today on is not
     overdue (the latest visit is that one)."""
-    from django.db.models import OuterRef, Subquery
+    from django.db.models import Subquery
 
     months = getattr(settings, "FOLLOW_UP_MONTHS", 6)
     visits_today = (Visit.objects.filter(patient__in=_patients(user), date=today)

@@ -10,9 +10,8 @@ import json
 from pathlib import Path
 
 import pytest
-from django.core.files.base import ContentFile
 
-from clinic.models import CaptureSession, Job, Patient, Reconstruction, Rig, Visit
+from tests.patient_records import two_torsos
 
 MESH = b"ply mesh of scan %d"
 INDICES = {"format": "torso-indices/1", "frame": {"origin_mm": [0, 0, 0], "left": [1, 0, 0], "posterior": [0, 1, 0],
@@ -22,22 +21,7 @@ INDICES = {"format": "torso-indices/1", "frame": {"origin_mm": [0, 0, 0], "left"
 
 @pytest.fixture
 def scans(clinic):
-    rig = Rig.objects.create(clinic=clinic, serial="RIG-M", description={})
-    patient = Patient.objects.create(clinic=clinic, identifier="P-M", name="Mo Mesh")
-    recs = []
-    for k, date in enumerate(["2026-07-01", "2026-11-01"]):
-        visit = Visit.objects.create(patient=patient, date=date)
-        session = CaptureSession.objects.create(rig=rig, kind="torso", visit=visit, manifest={"images": []},
-                                                manifest_sha256=str(k), idempotency_key=str(k), captured_at=date,
-                                                state=CaptureSession.FINALIZED)
-        job = Job.objects.create(kind=Job.RECONSTRUCTION, rig=rig, session=session, state=Job.SUCCEEDED)
-        rec = Reconstruction(job=job, session=session, status="ok", points=1, report={}, indices=INDICES)
-        rec.torso.save("torso.ply", ContentFile(b"ply torso %d" % k), save=False)
-        rec.mesh.save("torso-mesh.ply", ContentFile(MESH % k), save=False)
-        rec.report_file.save("report.json", ContentFile(b"{}"), save=False)
-        rec.save()
-        recs.append(rec)
-    return recs
+    return two_torsos(clinic, "RIG-M", "P-M", "Mo Mesh", indices=INDICES, mesh=MESH)[1]
 
 
 def _png(folder, name):

@@ -12,14 +12,14 @@ from datetime import timedelta
 from pathlib import Path
 
 import pytest
-from django.core.files.base import ContentFile
 from django.core.files.storage import default_storage
 from django.db import connection
 from django.test import Client
 from django.utils import timezone
 
 from clinic import pipeline, tasks
-from clinic.models import CaptureSession, Comparison, Job, Patient, Reconstruction, Rig, Visit
+from clinic.models import Comparison, Job
+from tests.patient_records import two_torsos
 
 REPORT = {"average_normal_distance_mm": 0.4, "matched_fraction": 0.93, "regions": {},
           "signed_distance_mm": {"mean": 0.1, "p05": -0.5, "p95": 0.6}}
@@ -61,21 +61,8 @@ def quick_analysis(monkeypatch):
 @pytest.fixture
 def two_scans(clinic):
     """A patient with two visits, a good torso each; ``(patient, earlier, later)``."""
-    rig = Rig.objects.create(clinic=clinic, serial="RIG-J", description={})
-    patient = Patient.objects.create(clinic=clinic, identifier="P-J", name="Jo Queue")
-    recs = []
-    for k, date in enumerate(["2026-07-01", "2026-11-01"]):
-        visit = Visit.objects.create(patient=patient, date=date)
-        session = CaptureSession.objects.create(rig=rig, kind="torso", visit=visit, manifest={"images": []},
-                                                manifest_sha256=str(k), idempotency_key=str(k), captured_at=date,
-                                                state=CaptureSession.FINALIZED)
-        job = Job.objects.create(kind=Job.RECONSTRUCTION, rig=rig, session=session, state=Job.SUCCEEDED)
-        rec = Reconstruction(job=job, session=session, status="ok", points=1, report={}, indices={})
-        rec.torso.save("torso.ply", ContentFile(b"ply torso %d" % k), save=False)
-        rec.report_file.save("report.json", ContentFile(b"{}"), save=False)
-        rec.save()
-        recs.append(rec)
-    return patient, recs[0], recs[1]
+    patient, (earlier, later) = two_torsos(clinic, "RIG-J", "P-J", "Jo Queue")
+    return patient, earlier, later
 
 
 def _url(patient, earlier, later):

@@ -2,19 +2,13 @@
 
 import pytest
 
+from tests.patient_records import correct_sacral_point
 from tests.test_browser_comparison import patient_with_two_visits  # noqa: F401 (fixture)
 
 
 @pytest.mark.django_db
 def test_a_corrected_sacral_point_is_used(client, charlie, patient_with_two_visits):  # noqa: F811
-    from clinic.models import Reconstruction
-
-    visit = patient_with_two_visits.visits.first()
-    rec = Reconstruction.objects.get(session__visit=visit)
-    auto = rec.indices["landmarks"]["sacral_point"]["position_mm"]
-    moved = [auto[0] + 5.0, auto[1], auto[2] + 20.0]
-    client.force_login(charlie)
-    r = client.post(f"/visits/{visit.pk}/landmarks", {"sacral_point": " ".join(map(str, moved))})
+    rec, auto, moved, r = correct_sacral_point(client, charlie, patient_with_two_visits.visits.first())
     assert r.status_code == 302
     rec.refresh_from_db()
     assert rec.landmarks == {"sacral_point": moved}

@@ -4,19 +4,15 @@ import pytest
 from django.core.files.base import ContentFile
 from django.core.files.storage import default_storage
 
+from tests.patient_records import correct_sacral_point
 from tests.test_browser_comparison import patient_with_two_visits  # noqa: F401 (fixture)
 
 
 @pytest.mark.django_db
 def test_it_undoes_the_last_correction_and_says_who_made_it(client, charlie, patient_with_two_visits):  # noqa: F811
-    from clinic.models import Reconstruction
-
     visit = patient_with_two_visits.visits.first()
-    rec = Reconstruction.objects.get(session__visit=visit)
-    auto = rec.indices["landmarks"]["sacral_point"]["position_mm"]
-    moved = [auto[0] + 5.0, auto[1], auto[2] + 20.0]
-    client.force_login(charlie)
-    assert client.post(f"/visits/{visit.pk}/landmarks", {"sacral_point": " ".join(map(str, moved))}).status_code == 302
+    rec, auto, moved, r = correct_sacral_point(client, charlie, visit)
+    assert r.status_code == 302
     rec.refresh_from_db()
     assert rec.landmarks == {"sacral_point": moved}
     assert [h["landmarks"] for h in rec.landmark_history] == [None] and rec.landmark_history[0]["by"] == "charlie"
