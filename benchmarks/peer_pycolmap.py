@@ -54,6 +54,13 @@ def _sift_options(pycolmap, max_features, affine, dsp):
     return opts
 
 
+def _params(cam, model: str) -> list:
+    """COLMAP's parameters of the camera's OpenCV model (fx, fy, cx, cy, k1, k2, p1, p2[, k3, k4, k5, k6])."""
+    k1, k2, p1, p2, k3 = (float(v) for v in cam.dist)
+    base = [cam.fx, cam.fy, cam.cx, cam.cy, k1, k2, p1, p2]
+    return base + [k3, 0.0, 0.0, 0.0] if model == "FULL_OPENCV" else base
+
+
 def pycolmap_arm(images: list, cameras: list, workdir, pairs=None, max_features=40000, *,
                  affine_shape=True, domain_size_pooling=True, keep_two_view_tracks=True,
                  guided_matching=False, num_threads=2) -> dict:
@@ -108,8 +115,11 @@ def pycolmap_arm(images: list, cameras: list, workdir, pairs=None, max_features=
 
     # --- 1. features ------------------------------------------------------
     t0 = time.perf_counter()
+    # OPENCV holds the engine's five terms when k3 = 0 (our own calibrations); FULL_OPENCV (k1..k6 radial as a
+    # ratio, here k4 = k5 = k6 = 0) the true lenses' k3
+    model = "FULL_OPENCV" if any(abs(float(c.dist[4])) > 1e-12 for c in cameras) else "OPENCV"
     reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = "OPENCV"
+    reader.camera_model = model
     # one camera per image; the true intrinsics are written right below
     # (ImageReaderOptions holds a single camera_params string for all images)
     pycolmap.extract_features(
@@ -127,10 +137,7 @@ def pycolmap_arm(images: list, cameras: list, workdir, pairs=None, max_features=
         dbcam = db.read_camera(im.camera_id)
         if (dbcam.width, dbcam.height) != (cam.width, cam.height):
             raise ValueError(f"{name}: image is {dbcam.width}x{dbcam.height}, camera {cam.width}x{cam.height}")
-        k1, k2, p1, p2, k3 = (float(v) for v in cam.dist)
-        if abs(k3) > 1e-12:
-            raise ValueError("OPENCV model has no k3; FULL_OPENCV would be needed")
-        dbcam.params = [cam.fx, cam.fy, cam.cx, cam.cy, k1, k2, p1, p2]
+        dbcam.params = _params(cam, model)
         dbcam.has_prior_focal_length = True
         db.update_camera(dbcam)
         image_ids.append(im.image_id)
@@ -167,10 +174,8 @@ def pycolmap_arm(images: list, cameras: list, workdir, pairs=None, max_features=
     t0 = time.perf_counter()
     rec = pycolmap.Reconstruction()
     for name, cam, image_id, camera_id in zip(names, cameras, image_ids, camera_ids):
-        k1, k2, p1, p2, _ = (float(v) for v in cam.dist)
-        pcam = pycolmap.Camera(camera_id=camera_id, model="OPENCV", width=int(cam.width),
-                               height=int(cam.height),
-                               params=[cam.fx, cam.fy, cam.cx, cam.cy, k1, k2, p1, p2])
+        pcam = pycolmap.Camera(camera_id=camera_id, model=model, width=int(cam.width),
+                               height=int(cam.height), params=_params(cam, model))
         rec.add_camera_with_trivial_rig(pcam)
         R = np.asarray(cam.R, float)
         cam_from_world = pycolmap.Rigid3d(rotation=pycolmap.Rotation3d(R),
