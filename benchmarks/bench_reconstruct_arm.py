@@ -32,6 +32,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -178,8 +179,17 @@ def main() -> int:
     ap.add_argument("--pycolmap-arms", default="A", help="arms pycolmap runs on (about 100 s per arm)")
     ap.add_argument("--no-pycolmap", action="store_true")
     ap.add_argument("--no-sgbm", action="store_true", help="ours (and pycolmap) only")
+    ap.add_argument("--fill-spacing-mm", type=float, default=None,
+                    help="our TrackingConfig.fill_spacing_mm (a cheaper rig: 2.0; default: the engine's)")
+    ap.add_argument("--max-sigma-factor", type=float, default=None,
+                    help="our ReconstructionConfig.max_sigma_factor (with the fill: 4.0; default: the engine's)")
     ap.add_argument("--json", default="bench-out/bench_reconstruct_arm.json")
     args = ap.parse_args()
+    ours_cfg = ReconstructionConfig()
+    if args.fill_spacing_mm is not None:
+        ours_cfg = replace(ours_cfg, tracking=replace(ours_cfg.tracking, fill_spacing_mm=args.fill_spacing_mm))
+    if args.max_sigma_factor is not None:
+        ours_cfg = replace(ours_cfg, max_sigma_factor=args.max_sigma_factor)
     reuse_freed_images()  # as the command line does: the figures are the CLI's
     S = Path(args.scenario)
     rig = read_rig(S / "rig.json")
@@ -196,6 +206,8 @@ def main() -> int:
     centre = rig_centre(list(cal.cameras.values()))
     out = {"machine": machine(), "command": " ".join(["benchmarks/bench_reconstruct_arm.py", *sys.argv[1:]]),
            "calibration": "true, capture time" if args.true_calibration else f"ours: {args.calibration}",
+           "ours_settings": {"fill_spacing_mm": ours_cfg.tracking.fill_spacing_mm,
+                             "max_sigma_factor": ours_cfg.max_sigma_factor},
            "arms": {}}
     total_ours = 0.0
     for arm in args.arms.split(","):
@@ -208,7 +220,7 @@ def main() -> int:
             return np.asarray(points, float).reshape(-1, 3) @ R.T + t
 
         t0 = time.perf_counter()
-        surface, report = reconstruct_arm(cap, rig, cal, arm)
+        surface, report = reconstruct_arm(cap, rig, cal, arm, ours_cfg)
         t_ours = time.perf_counter() - t0
         total_ours += t_ours
         row = {"ours": {**truth.figures(placed(surface.points), seen_by), "seconds": t_ours,

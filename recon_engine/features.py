@@ -132,3 +132,41 @@ def harris_features(image: np.ndarray, mask: np.ndarray | None = None, spacing: 
     if max_features is not None:
         order = order[:max_features]
     return xy[order], resp[order]
+
+
+def cell_features(image: np.ndarray, mask: np.ndarray, cell: int, taken: np.ndarray | None = None,
+                  relative_threshold: float = 0.05, block_size: int = 5) -> np.ndarray:
+    """One point per ``cell`` x ``cell`` px cell of ``mask``: its best-textured pixel, where no feature is ``taken``.
+
+    Between the corners of a projected pattern the skin is still textured (the
+    edges of its dots), but Harris finds no peak there: where the pattern's
+    corners are sparser than the pixels (a camera coarser than the pattern's
+    design), these points let matching follow the pixels rather than the
+    corners. Texture is the smaller eigenvalue of the structure tensor over
+    ``block_size`` px (Shi-Tomasi); cells whose best is below
+    ``relative_threshold`` of the 99th percentile get no point.
+
+    Returns integer positions (N, 2) px (x = column, y = row), best-textured first.
+    """
+    E = cv2.cornerMinEigenVal(np.asarray(image, dtype=np.float32), block_size, 3)
+    E = np.where(mask, E, 0.0).astype(np.float32)
+    positive = E[E > 0]
+    if positive.size == 0 or cell < 1:
+        return np.zeros((0, 2))
+    floor = relative_threshold * float(np.percentile(positive, 99))
+    H, W = (E.shape[0] // cell) * cell, (E.shape[1] // cell) * cell
+    blocks = E[:H, :W].reshape(H // cell, cell, W // cell, cell).transpose(0, 2, 1, 3).reshape(H // cell, W // cell, -1)
+    best = blocks.argmax(axis=2)
+    value = np.take_along_axis(blocks, best[..., None], axis=2)[..., 0]
+    free = value > floor
+    if taken is not None and len(taken):
+        t = np.floor(np.asarray(taken, float)).astype(int)
+        inside = (t[:, 0] >= 0) & (t[:, 0] < W) & (t[:, 1] >= 0) & (t[:, 1] < H)
+        free[t[inside, 1] // cell, t[inside, 0] // cell] = False
+    # not on the image's outermost pixels (matching windows need their neighbours)
+    gy, gx = np.nonzero(free)
+    y = gy * cell + best[gy, gx] // cell
+    x = gx * cell + best[gy, gx] % cell
+    ok = (x > 0) & (y > 0) & (x < E.shape[1] - 1) & (y < E.shape[0] - 1)
+    order = np.argsort(-value[gy, gx][ok], kind="stable")
+    return np.column_stack([x[ok], y[ok]]).astype(float)[order]

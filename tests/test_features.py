@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from recon_engine.features import harris_features, region_of_interest
+from recon_engine.features import cell_features, harris_features, region_of_interest
+from recon_engine.tracking import fill_cell_px
 from recon_engine.formats import load_image, read_capture, read_rig
 
 
@@ -43,3 +44,30 @@ def test_harris_features_respect_the_region_and_the_spacing(torso_scenario):
 def test_an_image_without_texture_has_no_features():
     xy, _ = harris_features(np.full((50, 60), 128, np.uint8))
     assert xy.shape == (0, 2)
+
+
+def test_cell_features_fill_the_cells_the_corners_left_empty(torso_scenario):
+    img = _image(torso_scenario)
+    roi = region_of_interest(img)
+    corners, _ = harris_features(img, roi, spacing=6)
+    fill = cell_features(img, roi, 4, taken=corners)
+    assert len(fill) > len(corners)  # between a pattern's corners its dots' edges still carry texture
+    cells = {tuple(c) for c in (fill // 4).astype(int)}
+    assert len(cells) == len(fill)  # one point per cell at most
+    assert not cells & {tuple(c) for c in (np.floor(corners) // 4).astype(int)}  # none where a corner is
+    assert roi[fill[:, 1].astype(int), fill[:, 0].astype(int)].all()
+    flat = np.full_like(img, 100)
+    assert len(cell_features(flat, roi, 4)) == 0  # no texture, no point
+
+
+def test_the_fill_starts_only_where_the_features_lie_farther_apart_on_the_skin_than_asked():
+    class Pair:
+        f = 2000.0  # px: at 2000 mm depth one pixel is 1 mm on the skin
+
+    roi = np.ones((100, 100), bool)
+    # 400 features on 10 000 px: 5 px, 5 mm apart
+    assert fill_cell_px(Pair(), (1900.0, 2100.0), roi, 400, 2.0) == 2
+    assert fill_cell_px(Pair(), (1900.0, 2100.0), roi, 400, 3.0) == 3
+    assert fill_cell_px(Pair(), (1900.0, 2100.0), roi, 400, 6.0) == 0  # closer than asked already
+    assert fill_cell_px(Pair(), lambda pair: (1900.0, 2100.0), roi, 400, 0.0) == 0  # off
+    assert fill_cell_px(Pair(), (1900.0, 2100.0), roi, 400, 0.5) == 2  # never finer than 2 px
