@@ -187,6 +187,9 @@ def pycolmap_arm(images: list, cameras: list, workdir, pairs=None, max_features=
     opts.min_num_matches = 15
     opts.extract_colors = False
     opts.triangulation.ignore_two_view_tracks = not keep_two_view_tracks
+    # the lenses are known: COLMAP must not take a large true k3 (the simulator's richer lenses reach |k3| > 1)
+    # for a diverged estimate and leave the camera's images out (0 points otherwise)
+    opts.max_extra_param = opts.mapper.max_extra_param = opts.triangulation.max_extra_param = 1e6
     rec = pycolmap.triangulate_points(rec, database_path, image_dir, model_dir,
                                       clear_points=True, options=opts, refine_intrinsics=False)
     ids = list(rec.points3D.keys())
