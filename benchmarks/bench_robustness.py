@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 import time
 from dataclasses import replace
@@ -98,16 +99,18 @@ def arm_ids_of(preset_name: str, seed: int, arm: str, out: Path) -> list:
     return arm_cameras(read_rig(clean / "rig.json"), arm)
 
 
-def run_condition(folder: Path, arm: str, peers: set) -> dict:
+def run_condition(folder: Path, arm: str, peers: set, ours: bool = True) -> dict:
     rig = read_rig(folder / "rig.json")
     cal = read_calibration(folder / "truth" / "visit0-a" / "calibration.json")
     cap = read_capture(folder / "captures" / "visit0-a", rig)
     truth = Truth(folder, "visit0-a")
     ids = arm_cameras(rig, arm)
     cams = [cal.cameras[c] for c in ids]
-    t0 = time.perf_counter()
-    surface, report = reconstruct_arm(cap, rig, cal, arm)
-    row = {"ours": {**truth.figures(surface.points, cams), "seconds": time.perf_counter() - t0}}
+    row = {}
+    if ours:
+        t0 = time.perf_counter()
+        surface, report = reconstruct_arm(cap, rig, cal, arm)
+        row["ours"] = {**truth.figures(surface.points, cams), "seconds": time.perf_counter() - t0}
     images = [load_image(cap, c, rig) for c in ids]
     if "sgbm" in peers:
         _, filtered, t_sg = sgbm_arm(images, cams, rig_centre(list(cal.cameras.values())))
@@ -116,7 +119,10 @@ def run_condition(folder: Path, arm: str, peers: set) -> dict:
         from peer_pycolmap import pycolmap_arm
 
         t0 = time.perf_counter()
-        pc = pycolmap_arm(images, cams, folder.parent / f"pycolmap-{folder.name}")
+        work = folder.parent / f"pycolmap-{folder.name}"
+        if work.exists():
+            shutil.rmtree(work)  # a database left by an earlier run would be read, not made again
+        pc = pycolmap_arm(images, cams, work)
         row["pycolmap"] = {**truth.figures(pc["points"][pc["track_lengths"] >= 3], cams),
                            "seconds": time.perf_counter() - t0}
     return row
@@ -141,6 +147,26 @@ def ratios(rows: dict) -> dict:
     return out
 
 
+def markdown(result: dict) -> str:
+    """The JSON's conditions as the table of ``docs/benchmarks.md``."""
+    def cell(x, with_time=True):
+        if not x or not x.get("points"):
+            return "not run" if not x else "no points"
+        t = f", {x['seconds']:.0f} s" if with_time else ""
+        return (f"{x['rms_mm']:.4f} / {x['p95_mm']:.3f} / {x['max_mm']:.2f}, {100 * x['coverage']:.1f} %"
+                f" ({x['beyond_2mm']} > 2 mm){t}")
+
+    rows = ["| condition | ours: RMS / p95 / max (mm), coverage, time | RMS ÷ clean | SGBM (our filters) | "
+            "pycolmap (tracks ≥ 3) | SGBM p95 ÷ ours | pycolmap RMS ÷ ours |", "|---|---|---|---|---|---|---|"]
+    ratio = result.get("ratios", {})
+    for name, row in result["conditions"].items():
+        r = ratio.get(name, {})
+        fmt = (lambda k: f"{r[k]:.2f}" if k in r else "")
+        rows.append(f"| {name}: {row['what']} | {cell(row['ours'])} | {fmt('rms_vs_clean')} | {cell(row.get('sgbm'))} | "
+                    f"{cell(row.get('pycolmap'))} | {fmt('sgbm_p95_over_ours')} | {fmt('pycolmap_rms_over_ours')} |")
+    return "\n".join(rows)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--preset", default="paper")
@@ -150,7 +176,13 @@ def main() -> int:
     ap.add_argument("--peers", default="sgbm,pycolmap", help="comma-separated: sgbm, pycolmap (empty: ours only)")
     ap.add_argument("--out", default="bench-out/robustness", help="scenarios are kept here and reused")
     ap.add_argument("--json", default="bench-out/bench_robustness.json")
+    ap.add_argument("--table", action="store_true", help="print the JSON's table in markdown and stop")
+    ap.add_argument("--add-peers", action="store_true",
+                    help="run only --peers on conditions already in the JSON, keeping their other figures")
     args = ap.parse_args()
+    if args.table:
+        print(markdown(json.loads(Path(args.json).read_text())))
+        return 0
     reuse_freed_images()  # as the command line does: the figures are the CLI's
     out = Path(args.out) / f"{args.preset}-s{args.seed}"
     out.mkdir(parents=True, exist_ok=True)
@@ -170,9 +202,12 @@ def main() -> int:
         if not folder.exists():
             simulate(folder, scenario_for(name, args.preset, args.seed, ids), progress=lambda m: None)
         t_sim = time.perf_counter() - t0
-        row = run_condition(folder, args.arm, peers)
-        row["what"] = CONDITIONS[name][0]
-        row["simulated_s"] = t_sim
+        if args.add_peers and name in rows:
+            row = {**rows[name], **run_condition(folder, args.arm, peers, ours=False)}
+        else:
+            row = run_condition(folder, args.arm, peers)
+            row["what"] = CONDITIONS[name][0]
+            row["simulated_s"] = t_sim
         rows[name] = row
         print(name, json.dumps({k: {kk: (round(vv, 4) if isinstance(vv, float) else vv) for kk, vv in v.items()}
                                 for k, v in row.items() if isinstance(v, dict)}), flush=True)
