@@ -61,6 +61,8 @@ CONDITIONS = {
     "clean": ("the clean capture", lambda c, cam: c),
     "dark_skin": ("Fitzpatrick V-VI: albedo 0.12 (clean 0.5); the rig's exposure stays set for albedo 0.5",
                   lambda c, cam: _conditions(_subject(c, albedo=0.12), exposure_albedo=0.5)),
+    "dark_skin_exposed": ("the same dark skin, the exposure set for it (the technician's or an auto-exposure's)",
+                          lambda c, cam: _subject(c, albedo=0.12)),
     "oily_skin": ("specular highlights: 8 % of the projectors' light reflected in a Blinn-Phong lobe (exponent 30)",
                   lambda c, cam: _conditions(c, specular=0.08, shininess=30.0)),
     "freckles_moles": ("30 freckles per dm2 (1-3 mm, 15-40 % darker) and 15 moles (3-6 mm, 65 % darker)",
