@@ -9,6 +9,43 @@ from recon_engine.simulator.config import preset
 from recon_engine.simulator.scenario import simulate
 
 
+def pytest_configure(config):
+    """The matching's compiled kernels loaded once, in the run's first process, before any worker starts.
+
+    numba compiles them on first use (about 24 s of one core) and caches the
+    machine code beside the source; in a fresh clone every process that got
+    there before the cache was written (pytest's workers, the engine's arm
+    processes, Celery's children) compiled them again.
+    """
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        from recon_engine.kernels import warm_up
+
+        warm_up()
+
+
+# Test files by what they cost (seconds of wall time, three workers on 2 cores; measured 2026-12-03), the
+# costliest first. pytest-xdist hands each worker whole files in collection order (make test turns its own
+# reordering, by the number of tests in a file, off): the long single-test files of real processes would
+# otherwise come last and leave the other workers idle at the end.
+COST_S = {
+    "test_stability.py": 238, "test_browser_clinic_day.py": 138, "test_service_flow_postgres.py": 126,
+    "test_matching.py": 109, "test_reconstruct_torso.py": 97, "test_reconstruct_arm.py": 89,
+    "test_service_flow_embedded.py": 84, "test_broker_outage.py": 81, "test_bundle_outage.py": 81,
+    "test_worker_killed.py": 77, "test_analysis_indices.py": 62, "test_job_leases.py": 60,
+    "test_report_pdf.py": 56, "test_accessibility.py": 56, "test_pipeline_comparisons.py": 54,
+    "test_backup_restore_postgres.py": 44, "test_production_settings.py": 40, "test_landmark_correction.py": 39,
+    "test_analysis_facing.py": 39, "test_simulator_conditions.py": 38, "test_analysis_landmarks.py": 36,
+    "test_analysis_compare.py": 33, "test_api_rejects_bad_fields.py": 29, "test_analysis_cli.py": 26,
+    "test_registration_rims.py": 26, "test_history_headline.py": 25, "test_same_day_rescan_comparison.py": 24,
+    "test_bundle_sparse.py": 24, "test_browser_comparison.py": 21, "test_backup_restore.py": 20,
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    """The costliest files first (``COST_S``), each file's tests in their own order; the rest as collected."""
+    items.sort(key=lambda item: -COST_S.get(item.path.name, 0))  # stable: a file's tests keep their order
+
+
 def simulated_once(tmp_path_factory, name, cfg):
     """The scenario ``cfg`` simulated into a folder all of the run's workers share; the first one in simulates.
 
