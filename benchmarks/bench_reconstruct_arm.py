@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 import time
 from dataclasses import replace
@@ -165,6 +166,47 @@ def arm_displacement(scenario: Path, capture: str, arm: str):
     return np.asarray(d["R"], float), np.asarray(d["t"], float)
 
 
+def measure_arm(cap, rig, cal, arm: str, truth: Truth, seen_by: list, placed=lambda p: p, cfg=None, *,
+                centre=None, peers=frozenset({"sgbm", "pycolmap"}), ours: bool = True,
+                pycolmap_work: Path = Path("bench-out/pycolmap")) -> dict:
+    """One arm of one capture, by ours and the ``peers``, against the truth: the benchmark's row.
+
+    ``cal`` is the calibration every method is given; ``seen_by`` the arm's
+    cameras at capture time (what decides the area two of them saw);
+    ``placed`` moves points from the calibration's frame into the capture's
+    (mm). Each method's figures, with its time (s); SGBM with our filters;
+    pycolmap's points with tracks of 3 images or more (and, for reference,
+    with two-image tracks too), its work folder made afresh.
+    """
+    ids = arm_cameras(rig, arm)
+    cams = [cal.cameras[c] for c in ids]
+    centre = rig_centre(list(cal.cameras.values())) if centre is None else centre
+    row = {}
+    if ours:
+        t0 = time.perf_counter()
+        surface, report = reconstruct_arm(cap, rig, cal, arm, cfg)
+        row["ours"] = {**truth.figures(placed(surface.points), seen_by), "seconds": time.perf_counter() - t0,
+                       "rays_per_point": report["rays_per_point"]}
+    images = [load_image(cap, c, rig) for c in ids]
+    if "sgbm" in peers:
+        raw, filtered, t_sg = sgbm_arm(images, cams, centre)
+        row["sgbm"] = {**truth.figures(placed(filtered), seen_by), "seconds": t_sg,
+                       "filters": "ours (precision, off the local surface, islands)"}
+        row["sgbm_unfiltered"] = truth.figures(placed(raw), seen_by)
+    if "pycolmap" in peers:
+        from peer_pycolmap import pycolmap_arm
+
+        if pycolmap_work.exists():
+            shutil.rmtree(pycolmap_work)  # a database left by an earlier run would be read, not made again
+        t0 = time.perf_counter()
+        pc = pycolmap_arm(images, cams, pycolmap_work)
+        three = pc["track_lengths"] >= 3
+        row["pycolmap"] = {**truth.figures(placed(pc["points"][three]), seen_by),
+                           "seconds": time.perf_counter() - t0, "tracks": ">= 3 images"}
+        row["pycolmap_two_view_tracks_too"] = truth.figures(placed(pc["points"]), seen_by)
+    return row
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="bench-out/paper")
@@ -211,36 +253,18 @@ def main() -> int:
            "arms": {}}
     total_ours = 0.0
     for arm in args.arms.split(","):
-        ids = arm_cameras(rig, arm)
-        cams = [cal.cameras[c] for c in ids]
-        seen_by = [truth_cal.cameras[c] for c in ids]  # what the arm's cameras saw at capture time
+        seen_by = [truth_cal.cameras[c] for c in arm_cameras(rig, arm)]  # the arm's cameras at capture time
         R, t = (np.eye(3), np.zeros(3)) if args.true_calibration else arm_displacement(S, args.capture, arm)
 
         def placed(points):  # the calibration's frame -> the capture's (the arm moved since)
             return np.asarray(points, float).reshape(-1, 3) @ R.T + t
 
-        t0 = time.perf_counter()
-        surface, report = reconstruct_arm(cap, rig, cal, arm, ours_cfg)
-        t_ours = time.perf_counter() - t0
-        total_ours += t_ours
-        row = {"ours": {**truth.figures(placed(surface.points), seen_by), "seconds": t_ours,
-                        "rays_per_point": report["rays_per_point"]}}
-        images = [load_image(cap, c, rig) for c in ids]
-        if not args.no_sgbm:
-            raw, filtered, t_sg = sgbm_arm(images, cams, centre)
-            row["sgbm"] = {**truth.figures(placed(filtered), seen_by), "seconds": t_sg,
-                           "filters": "ours (precision, off the local surface, islands)"}
-            row["sgbm_unfiltered"] = truth.figures(placed(raw), seen_by)
+        peers = {"sgbm"} if not args.no_sgbm else set()
         if not args.no_pycolmap and arm in args.pycolmap_arms.split(","):
-            from peer_pycolmap import pycolmap_arm
-
-            t0 = time.perf_counter()
-            pc = pycolmap_arm(images, cams, Path("bench-out") / f"pycolmap-{arm}")
-            t_pc = time.perf_counter() - t0
-            three = pc["track_lengths"] >= 3
-            row["pycolmap"] = {**truth.figures(placed(pc["points"][three]), seen_by), "seconds": t_pc,
-                               "tracks": ">= 3 images"}
-            row["pycolmap_two_view_tracks_too"] = truth.figures(placed(pc["points"]), seen_by)
+            peers.add("pycolmap")
+        row = measure_arm(cap, rig, cal, arm, truth, seen_by, placed, ours_cfg, centre=centre, peers=peers,
+                          pycolmap_work=Path("bench-out") / f"pycolmap-{arm}")
+        total_ours += row["ours"]["seconds"]
         out["arms"][arm] = row
         print(arm, json.dumps({k: {kk: (round(vv, 4) if isinstance(vv, float) else vv) for kk, vv in v.items()
                                    if kk != "rays_per_point"} for k, v in row.items()}), flush=True)

@@ -20,23 +20,24 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from recon_engine.epipolar import rig_centre  # noqa: E402
-from recon_engine.formats import load_image, read_calibration, read_capture, read_rig  # noqa: E402
+from recon_engine.formats import read_calibration, read_capture, read_rig  # noqa: E402
 from recon_engine.parallel import reuse_freed_images  # noqa: E402
-from recon_engine.reconstruction import arm_cameras, reconstruct_arm  # noqa: E402
+from recon_engine.reconstruction import arm_cameras  # noqa: E402
 from recon_engine.simulator.config import preset  # noqa: E402
+from recon_engine.simulator.rig import make_rig  # noqa: E402
 from recon_engine.simulator.scenario import simulate  # noqa: E402
 
-from bench_reconstruct_arm import Truth, sgbm_arm  # noqa: E402
+from bench_reconstruct_arm import Truth, measure_arm  # noqa: E402
 from bench_simulate import machine  # noqa: E402
 
 
@@ -91,43 +92,21 @@ def scenario_for(name: str, preset_name: str, seed: int, arm_ids: list) -> objec
     return CONDITIONS[name][1](base, arm_ids[len(arm_ids) // 2])
 
 
-def arm_ids_of(preset_name: str, seed: int, arm: str, out: Path) -> list:
-    """The arm's camera ids, from the clean scenario's rig (simulated first if missing)."""
-    clean = out / "clean"
-    if not clean.exists():
-        # camera ids are the rig's: A1..A5 for arm A; the rig does not depend on the conditions
-        ids = [f"{arm}{k}" for k in range(1, preset(preset_name).rig.cameras_per_arm + 1)]
-        simulate(clean, scenario_for("clean", preset_name, seed, ids), progress=print)
-    return arm_cameras(read_rig(clean / "rig.json"), arm)
+def arm_ids_of(preset_name: str, seed: int, arm: str) -> list:
+    """The arm's camera ids, from the rig the preset builds (the rig does not depend on the conditions)."""
+    cfg = preset(preset_name, seed=seed)
+    rig = make_rig(cfg, np.random.default_rng(seed), 0.0).rig  # only the rig's names are read
+    return arm_cameras(rig, arm)
 
 
 def run_condition(folder: Path, arm: str, peers: set, ours: bool = True) -> dict:
+    """One condition's scenario, arm ``arm``: ours and the ``peers``, every method with the true calibration."""
     rig = read_rig(folder / "rig.json")
     cal = read_calibration(folder / "truth" / "visit0-a" / "calibration.json")
     cap = read_capture(folder / "captures" / "visit0-a", rig)
-    truth = Truth(folder, "visit0-a")
-    ids = arm_cameras(rig, arm)
-    cams = [cal.cameras[c] for c in ids]
-    row = {}
-    if ours:
-        t0 = time.perf_counter()
-        surface, report = reconstruct_arm(cap, rig, cal, arm)
-        row["ours"] = {**truth.figures(surface.points, cams), "seconds": time.perf_counter() - t0}
-    images = [load_image(cap, c, rig) for c in ids]
-    if "sgbm" in peers:
-        _, filtered, t_sg = sgbm_arm(images, cams, rig_centre(list(cal.cameras.values())))
-        row["sgbm"] = {**truth.figures(filtered, cams), "seconds": t_sg}
-    if "pycolmap" in peers:
-        from peer_pycolmap import pycolmap_arm
-
-        t0 = time.perf_counter()
-        work = folder.parent / f"pycolmap-{folder.name}"
-        if work.exists():
-            shutil.rmtree(work)  # a database left by an earlier run would be read, not made again
-        pc = pycolmap_arm(images, cams, work)
-        row["pycolmap"] = {**truth.figures(pc["points"][pc["track_lengths"] >= 3], cams),
-                           "seconds": time.perf_counter() - t0}
-    return row
+    seen_by = [cal.cameras[c] for c in arm_cameras(rig, arm)]
+    return measure_arm(cap, rig, cal, arm, Truth(folder, "visit0-a"), seen_by, peers=peers, ours=ours,
+                       pycolmap_work=folder.parent / f"pycolmap-{folder.name}")
 
 
 def ratios(rows: dict) -> dict:
@@ -151,12 +130,11 @@ def ratios(rows: dict) -> dict:
 
 def markdown(result: dict) -> str:
     """The JSON's conditions as the table of ``docs/benchmarks.md``."""
-    def cell(x, with_time=True):
+    def cell(x):
         if not x or not x.get("points"):
             return "not run" if not x else "no points"
-        t = f", {x['seconds']:.0f} s" if with_time else ""
         return (f"{x['rms_mm']:.4f} / {x['p95_mm']:.3f} / {x['max_mm']:.2f}, {100 * x['coverage']:.1f} %"
-                f" ({x['beyond_2mm']} > 2 mm){t}")
+                f" ({x['beyond_2mm']} > 2 mm), {x['seconds']:.0f} s")
 
     rows = ["| condition | ours: RMS / p95 / max (mm), coverage, time | RMS ÷ clean | SGBM (our filters) | "
             "pycolmap (tracks ≥ 3) | SGBM p95 ÷ ours | pycolmap RMS ÷ ours |", "|---|---|---|---|---|---|---|"]
@@ -189,7 +167,7 @@ def main() -> int:
     out = Path(args.out) / f"{args.preset}-s{args.seed}"
     out.mkdir(parents=True, exist_ok=True)
     peers = {p for p in args.peers.split(",") if p}
-    ids = arm_ids_of(args.preset, args.seed, args.arm, out)
+    ids = arm_ids_of(args.preset, args.seed, args.arm)
     dest = Path(args.json)
     result = json.loads(dest.read_text()) if dest.exists() else {}
     if result.get("preset") != args.preset or result.get("seed") != args.seed:
