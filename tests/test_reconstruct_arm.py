@@ -84,6 +84,18 @@ def test_an_overexposed_image_is_named(torso_scenario, arm_a, tmp_path):
     assert report["unusable_images"]["A2"].startswith("overexposed")
 
 
+def test_an_image_one_stop_over_is_used_and_named_in_the_warnings(torso_scenario, arm_a, tmp_path):
+    rig, cal, cap, (_, clean) = arm_a
+    assert clean["warnings"] == []
+    imgs = load_images(cap, rig)
+    imgs["A3"] = np.clip(imgs["A3"].astype(np.int32) * 2, 0, 255).astype(np.uint8)  # +1 EV: highlights clip
+    write_capture(tmp_path / "plus1ev", kind="torso", rig=rig.serial, captured_at=cap.captured_at, images=imgs)
+    _, report = reconstruct_arm(read_capture(tmp_path / "plus1ev", rig), rig, cal, "A")
+    assert "A3" in report["cameras"] and report["unusable_images"] == {}
+    (warning,) = report["warnings"]
+    assert warning.startswith("image A3: ") and "saturated" in warning and "exposure" in warning
+
+
 def test_it_refuses_an_unknown_arm(arm_a):
     rig, cal, cap, _ = arm_a
     with pytest.raises(ValueError, match="no arm 'Z'"):
