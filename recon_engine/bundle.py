@@ -422,7 +422,8 @@ def adjust(pb: Problem, max_iterations: int = 30, reject_k: float = 4.0, robust_
     for round_ in range(robust_rounds + 1):
         w_obs = np.repeat(pb.weight * inlier, 2) / pb.sigma_px ** 2
         # a round that rejects blunders after it only has to find them: it stops at a looser tolerance; the
-        # last round goes on to the tight one (paper-scale calibration, seed 32: 68 -> 29 iterations, the same costs and rejections)
+        # last round goes on to the tight one (paper-scale calibration, seed 32: 68 -> 29 iterations, the
+        # same costs and rejections)
         converged, reason = iterate(w_obs, ROUND_TOL if round_ < robust_rounds else FINAL_TOL, round_)
         sigma0, res, pred, std_res = _standardized(pb, inlier, cams, poses, points, survey, lay)
         bad = inlier & (std_res > reject_k)
