@@ -75,25 +75,30 @@ def sharpness(image: np.ndarray, window: int = 15) -> float:
 
 
 def saturated_share(image: np.ndarray) -> float:
-    """The fraction of an 8- or 16-bit grey image's pixels at full scale."""
+    """The fraction of a grey image's pixels at full scale (8 or 16 bits; a float image in 8-bit levels)."""
     img = np.asarray(image)
-    return float(np.mean(img >= (65535 if img.dtype == np.uint16 else 255)))
+    full = {np.dtype(np.uint8): 255, np.dtype(np.uint16): 65535}.get(img.dtype, 254.5)
+    return float(np.mean(img >= full))
 
 
-def image_problem(image: np.ndarray, cfg: ReconstructionConfig) -> str:
-    """Why an image is unusable for matching, or "" when it is usable."""
+def image_check(image: np.ndarray, cfg: ReconstructionConfig) -> tuple[str, str]:
+    """``(problem, warning)``: why an image is unusable for matching ("" when usable), and what a usable
+    image's operator should know ("" when nothing)."""
     img = np.asarray(image)
     scale = 255.0 / 65535.0 if img.dtype == np.uint16 else 1.0
     g = img.astype(np.float32) * scale
     if g.std() < cfg.min_contrast:
-        return f"blank (grey-value standard deviation {g.std():.1f} < {cfg.min_contrast})"
-    sat = saturated_share(img) if img.dtype in (np.uint8, np.uint16) else float(np.mean(g >= 254.5))
+        return f"blank (grey-value standard deviation {g.std():.1f} < {cfg.min_contrast})", ""
+    sat = saturated_share(img)
     if sat > cfg.max_saturated:
-        return f"overexposed ({sat:.0%} of pixels saturated)"
+        return f"overexposed ({sat:.0%} of pixels saturated)", ""
     s = sharpness(g)
     if s < cfg.min_sharpness:
-        return f"out of focus (sharpness {s:.2f} < {cfg.min_sharpness})"
-    return ""
+        return f"out of focus (sharpness {s:.2f} < {cfg.min_sharpness})", ""
+    if sat > cfg.warn_saturated:
+        return "", (f"{sat:.0%} of its pixels saturated: the points it sees near its highlights are less "
+                    f"precise; lower that camera's exposure and scan again")
+    return "", ""
 
 
 def arm_cameras(rig: Rig, arm_id: str) -> list[str]:
@@ -131,13 +136,11 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
             return None, f"unreadable: {exc}"
         if image.ndim == 3:
             image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-        why = image_problem(image, cfg)
+        why, warning = image_check(image, cfg)
         if why:
             return None, why
-        sat = saturated_share(image) if image.dtype in (np.uint8, np.uint16) else 0.0
-        if sat > cfg.warn_saturated:
-            warnings.append(f"image {cam_id}: {sat:.0%} of its pixels saturated: the points it sees near its "
-                            f"highlights are less precise; lower that camera's exposure and scan again")
+        if warning:
+            warnings.append(f"image {cam_id}: {warning}")
         if image.dtype == np.uint16:
             image = (image.astype(np.float32) * (255.0 / 65535.0))
         return image.astype(np.float32), ""

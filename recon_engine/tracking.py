@@ -43,9 +43,10 @@ class TrackingConfig:
     # pattern's corners lie 5 mm apart): where the Harris features lie farther apart on the skin than this (mm), a
     # point goes into every cell of about this size without one (features.cell_features, cells of at least 2 px).
     # 0: off. Cheap preset (1000 x 667 px), arm A of tuning seed 41, true calibration: 2.0 gives coverage 42 ->
-    # 87 %, RMS 0.131 -> 0.147 mm (with ReconstructionConfig.max_sigma_factor 4), in 4.4 -> 10.7 s under load. At paper scale
-    # the features lie 1.8 mm apart; filling 6 px cells there gave +0.9 points of coverage for +0.0013 mm RMS and
-    # 1.7x the time, so it is off by default (and would change the tiny and demo presets' measured figures)
+    # 87 %, RMS 0.131 -> 0.147 mm (with ReconstructionConfig.max_sigma_factor 4), in 4.4 -> 10.7 s under load.
+    # At paper scale the features lie 1.8 mm apart; filling 6 px cells there gave +0.9 points of coverage for
+    # +0.0013 mm RMS and 1.7x the time, so it is off by default (and would change the tiny and demo presets'
+    # measured figures)
     fill_spacing_mm: float = 0.0
     fill_min_texture: float = 0.1  # those points only where the texture reaches this share of the image's 99th pct
     roi_window: int = 15  # px, contrast window of the region of interest
