@@ -123,6 +123,40 @@ def slope_at(x: np.ndarray, profile: np.ndarray, x0: float, half_width: float) -
     return float(np.linalg.lstsq(A, yy, rcond=None)[0][0])
 
 
+def prominence_difference(x: np.ndarray, profile: np.ndarray, x0: float, u_range: tuple,
+                          min_share: float = 0.5) -> tuple[float, float]:
+    """The rib hump of one horizontal profile: ``(height_mm, span_mm)``.
+
+    ``profile`` is the back's depth (posterior coordinate, mm) along ``x``
+    (mm, towards the patient's left); ``x0`` the symmetry point. On either
+    side, the highest point of the back between ``u_range[0]`` and
+    ``u_range[1]`` mm from ``x0`` (the paraspinal prominence); the height is the
+    right one's minus the left one's (+: the right side stands out), which is
+    the gap under a level resting horizontally on the higher side, measured
+    at the lower side's prominence. ``span_mm`` is the distance across between
+    the two prominences (the Scoliometer's chord: ``atan(height / span)``).
+
+    A prominence is a maximum, so it hardly moves when ``x0`` is a few
+    millimetres off, unlike the height difference at two points symmetric
+    about ``x0`` (which changes by twice the back's slope there per
+    millimetre). NaN where less than ``min_share`` of either side's
+    distances have a depth.
+    """
+    x = np.asarray(x, float)
+    profile = np.asarray(profile, float)
+    lo, hi = u_range
+    ok = np.isfinite(profile)
+    right = ok & (x <= x0 - lo) & (x >= x0 - hi)
+    left = ok & (x >= x0 + lo) & (x <= x0 + hi)
+    step = float(np.median(np.diff(x))) if len(x) > 1 else 1.0
+    need = min_share * (hi - lo) / step
+    if right.sum() < need or left.sum() < need:
+        return float("nan"), float("nan")
+    i = np.nonzero(right)[0][np.argmax(profile[right])]
+    j = np.nonzero(left)[0][np.argmax(profile[left])]
+    return float(profile[i] - profile[j]), float(x[j] - x[i])
+
+
 def central_extent(xs: np.ndarray, gap_mm: float, around: float = 0.0) -> tuple[float, float]:
     """The run of sorted coordinates ``xs`` without gaps wider than ``gap_mm`` that holds ``around`` (or is nearest)."""
     if len(xs) == 0:

@@ -27,7 +27,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .backsurface import DepthMap, back_points, central_extent, depth_map, slope_at, symmetry_point
+from .backsurface import (DepthMap, back_points, central_extent, depth_map, prominence_difference, slope_at,
+                          symmetry_point)
 from .config import AnalysisConfig, IndicesConfig, RigidConfig
 from .frame import PatientFrame, detect_posterior, frame_from_posterior, symmetry_plane
 from .landmarks import broad_slope, detect_landmarks, find_dimples, midline_profile, sagittal_inclination
@@ -264,12 +265,7 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         sec_rot = section_rotation(P[sec, :2], x0, N[sec, :2], ic.section_iterations)
         spine_rot = sec_rot if ic.spine_rotation == "section" and np.isfinite(sec_rot) else rot
         x_spine = x0 - ic.spine_depth_mm * np.sin(np.radians(spine_rot))
-        u = np.arange(ic.hump_range_mm[0], ic.hump_range_mm[1] + 1e-9, ic.grid_mm)
-        right = np.interp(x0 - u, dmap.x, row, left=np.nan, right=np.nan)
-        left = np.interp(x0 + u, dmap.x, row, left=np.nan, right=np.nan)
-        h = right - left
-        hump = signed_max(h)
-        k = int(np.nanargmax(np.abs(h))) if np.isfinite(h).any() else 0
+        hump, span = prominence_difference(dmap.x, row, x0, ic.hump_range_mm)
         sections.append({
             "level": round(float(s), 4), "z_mm": float(z),
             "symmetry_point_mm": float(x0), "symmetry_residual_mm": float(misfit),
@@ -282,7 +278,7 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
             # rasterstereography's surface rotation: the skin normal at the symmetry line
             "midline_rotation_deg": rot,
             "hump_mm": hump,
-            "hump_angle_deg": float(np.degrees(np.arctan2(hump, 2 * u[k]))) if np.isfinite(hump) else float("nan"),
+            "hump_angle_deg": float(np.degrees(np.arctan2(hump, span))) if np.isfinite(hump) else float("nan"),
             "depth_mm": float(np.interp(x0, dmap.x, row)),
         })
     if len(sections) < 3:

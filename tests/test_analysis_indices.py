@@ -105,8 +105,33 @@ def test_lateral_deviation_signed_right():
 
 def test_hump_height():
     a, truth = _run(hump_mm=8.0)
-    # the hump is measured at the paraspinal distance where it peaks, on a back that curves away: 0.78 of it
-    assert a.report["hump_mm"] == pytest.approx(0.78 * 8.0, abs=1.5)
+    # the synthetic hump is scaled by how squarely the skin faces backwards (sin^2 of its polar angle, 0.67 at
+    # 70 mm from the spine): the right prominence stands 5.3 mm above the left one
+    assert a.report["hump_mm"] == pytest.approx(0.67 * 8.0, abs=1.0)
+
+
+def test_hump_hardly_moves_with_the_symmetry_point():
+    from analysis.backsurface import prominence_difference
+
+    a, _ = _run(rotation_deg=10.0, hump_mm=5.0)
+    for sec in a.report["sections"]:
+        row = a.depth_map.row(sec["z_mm"])
+        x0 = sec["symmetry_point_mm"]
+        h0, span = prominence_difference(a.depth_map.x, row, x0, (20.0, 100.0))
+        assert np.isfinite(h0) and span > 40.0
+        for off in (-10.0, 10.0):
+            # two points symmetric about a point 10 mm off differ by 6-7 mm more on this back
+            assert abs(prominence_difference(a.depth_map.x, row, x0 + off, (20.0, 100.0))[0] - h0) < 1.5
+
+
+def test_hump_is_not_read_from_a_side_without_skin():
+    from analysis.backsurface import prominence_difference
+
+    x = np.arange(-150.0, 150.0, 2.0)
+    row = 100.0 - 0.001 * x ** 2
+    row[x > 30] = np.nan  # the left side seen only up to 30 mm from the spine
+    assert np.isnan(prominence_difference(x, row, 0.0, (20.0, 100.0))[0])
+    assert prominence_difference(x, 100.0 - 0.001 * x ** 2 + 0.05 * x, 0.0, (20.0, 100.0))[0] < 0  # left higher
 
 
 def test_trunk_imbalance():
