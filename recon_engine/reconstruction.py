@@ -17,7 +17,6 @@ from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 
 from .epipolar import rig_centre, subject_depth_bounds
@@ -125,7 +124,8 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     warnings = []  # appended by the loading threads (list.append is atomic); sorted below
 
     def usable(cam_id):
-        """(grey image as float32 in 8-bit levels, "") or (None, why it is unusable)."""
+        """(grey image in 8-bit levels, "") or (None, why it is unusable). An 8-bit image stays uint8 (a quarter
+        of float32's memory; tracking converts each image as it resamples it); a 16-bit one becomes float32."""
         if cam_id not in calibration.cameras:
             return None, "not in the calibration"
         if cam_id not in capture.cameras:
@@ -143,7 +143,7 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
             warnings.append(f"image {cam_id}: {warning}")
         if image.dtype == np.uint16:
             image = (image.astype(np.float32) * (255.0 / 65535.0))
-        return image.astype(np.float32), ""
+        return image if image.dtype == np.uint8 else image.astype(np.float32), ""
 
     # decoding and checking the images on threads (OpenCV and numpy release the GIL); the order is kept. The
     # matching's compiled kernels load meanwhile
@@ -288,6 +288,8 @@ def fuse_points(points: np.ndarray, normals: np.ndarray, sigma: np.ndarray, cell
 
 def poisson_mesh(points: np.ndarray, normals: np.ndarray, depth: int, trim_mm: float):
     """A watertight display mesh (Open3D's screened Poisson), trimmed to the data. (vertices, faces)."""
+    import open3d as o3d  # here, not at the top: the arm processes never need its 90 MB
+
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     pcd.normals = o3d.utility.Vector3dVector(normals)
     mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=depth)

@@ -22,7 +22,6 @@ from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 
 from .bundle import rodrigues
@@ -147,6 +146,9 @@ class PatchIndex:
             if keep.sum() >= 3:
                 surface = PointSurface(surface.points, surface.normals, F0[keep], surface.data)
         self.surface = surface
+        import open3d as o3d  # here, not at the top: the engine's arm processes import this module but never
+        # register, and Open3D costs each of them 90 MB
+
         mesh = o3d.t.geometry.TriangleMesh()
         mesh.vertex.positions = o3d.core.Tensor(surface.points.astype(np.float32))
         mesh.triangle.indices = o3d.core.Tensor(surface.faces.astype(np.int32))
@@ -193,6 +195,8 @@ class PatchIndex:
         if len(x) == 0:
             z = np.zeros((0, 3))
             return np.zeros(0, np.int64), np.zeros(0, bool), z, z, np.zeros(0)
+        import open3d as o3d  # loaded by __init__ already
+
         ans = self.scene.compute_closest_points(o3d.core.Tensor(np.asarray(x, np.float32)))
         gap = np.linalg.norm(np.asarray(x, dtype=float) - ans["points"].numpy(), axis=1)
         pid = ans["primitive_ids"].numpy().astype(np.int64)
