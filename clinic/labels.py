@@ -60,11 +60,13 @@ INDICES: dict[str, Index] = {
         "The skin's tilt at the midline averaged over the trunk (root mean square).", _ROT_POS, _ROT_NEG),
     "hump_mm": Index(
         "Rib / lumbar hump height", "mm",
-        "Height difference between the two sides of the back at the same distance from the midline, at its largest.",
+        "How far the higher side's prominence of the back stands out beyond the other side's (the gap under a level "
+        "laid across the back), at its largest.",
         _HUMP_POS, _HUMP_NEG),
     "hump_angle_deg": Index(
         "Hump angle", "°",
-        "The hump as an angle across the back, like a scoliometer laid on it.", _HUMP_POS, _HUMP_NEG),
+        "The hump as the angle of a line resting on both prominences, like a scoliometer laid on them.",
+        _HUMP_POS, _HUMP_NEG),
     "trunk_imbalance_mm": Index(
         "Trunk imbalance (side to side)", "mm",
         "How far C7 (vertebra prominens) stands sideways of the sacral point: the trunk's balance seen from behind.",
