@@ -111,40 +111,46 @@ def track_images(images: list, cameras: list, depth_bounds, cfg: TrackingConfig 
         return xy, roi
 
     def prepare(k):
-        """The rectified pair k, k+1, its left image's region of interest and fresh Harris features (and the
-        rectified pair k, k+2 with its left image's features)."""
+        """The rectified pair k, k+1, its left image's region of interest and fresh Harris features."""
         pair = rectify_pair(cameras[k], cameras[k + 1])
         left = pair.resample("left", np.asarray(images[k], dtype=np.float32))
         right = pair.resample("right", np.asarray(images[k + 1], dtype=np.float32))
         fresh, roi = features(pair, "left", left, k)
-        skip = None
-        if cfg.skip_pairs and k + 2 < K:
-            wide = rectify_pair(cameras[k], cameras[k + 2])
-            wide_left = wide.resample("left", np.asarray(images[k], dtype=np.float32))
-            wide_right = wide.resample("right", np.asarray(images[k + 2], dtype=np.float32))
-            skip = (wide, wide_left, wide_right, features(wide, "left", wide_left, k)[0])
-        return (pair, left, right, roi, fresh), skip
+        return pair, left, right, roi, fresh
+
+    def grow_skip(j, tracks, corr):
+        """Pair j, j+2 rectified, grown (``_grow_skip_pair``) and freed, once image j+2 has all its tracks.
+        Rectified only then, not with pair j: two such pairs waiting were 0.1 GB of an arm's peak."""
+        if not cfg.skip_pairs or j < 0 or j + 2 >= K:
+            return tracks, corr
+        wide = rectify_pair(cameras[j], cameras[j + 2])
+        wide_left = wide.resample("left", np.asarray(images[j], dtype=np.float32))
+        wide_right = wide.resample("right", np.asarray(images[j + 2], dtype=np.float32))
+        tracks, corr, pairs[j]["skip_grown"] = _grow_skip_pair(j, wide, wide_left, wide_right,
+                                                               features(wide, "left", wide_left, j)[0], tracks,
+                                                               corr, cfg)
+        return tracks, corr
 
     # with more than one thread the next pair is prepared on another (OpenCV releases the GIL) while this one is
     # matched: it fills the matching's single-threaded stretches. Pair k-1 grows back with image k's features,
     # prepared with pair k, before pair k's matching (its new tracks go on from image k); pair k-2, k grows once
     # image k has all its tracks
-    back, skips = None, []  # skips[j]: pair j, j+2 (None when off), grown at step j+2
-    for k, (prepared, skip) in enumerate(_in_order(prepare, K - 1, ahead=cores(cfg.matching.threads) > 1)):
+    back = None
+    for k, prepared in enumerate(_in_order(prepare, K - 1, ahead=cores(cfg.matching.threads) > 1)):
         pair, fresh = prepared[0], prepared[4]
         if back is not None:
             # image k's features in pair k-1's rectification (the right image)
             features_k = back[0].to_rectified("right", pair.to_original("left", fresh))
             tracks, corr, pairs[k - 1]["grown_back"] = _grow_back(k - 1, *back, features_k, tracks, corr, cfg)
-        tracks, corr = _grow_waiting_skip(k - 2, skips, tracks, corr, pairs, cfg)
-        skips.append(skip)
+            back = None  # pair k-1's images are freed before pair k is matched
+        tracks, corr = grow_skip(k - 2, tracks, corr)
         tracks, corr, figures, back = _track_pair(k, *prepared, tracks, corr, depth_bounds, cfg)
         pairs.append(figures)
     if back is not None:
         # the last image has no pair of its own: its features in the last pair's rectification
         tracks, corr, pairs[-1]["grown_back"] = _grow_back(K - 2, *back, features(back[0], "right", back[2], K - 1)[0],
                                                            tracks, corr, cfg)
-    tracks, corr = _grow_waiting_skip(K - 3, skips, tracks, corr, pairs, cfg)
+    tracks, corr = grow_skip(K - 3, tracks, corr)
     return {"tracks": tracks, "ncc": corr, "pairs": pairs}
 
 
@@ -162,15 +168,6 @@ def fill_cell_px(pair, depth_bounds, roi: np.ndarray, n_features: int, spacing_m
     pixel_mm = 0.5 * (d0 + d1) / pair.f
     spacing = np.sqrt(roi.sum() / n_features) * pixel_mm
     return max(2, int(round(spacing_mm / pixel_mm))) if spacing > spacing_mm else 0
-
-
-def _grow_waiting_skip(j, skips, tracks, corr, pairs, cfg):
-    """Grows the prepared pair j, j+2 of ``skips`` (if any), records its figure and frees its images."""
-    if j < 0 or j >= len(skips) or skips[j] is None:
-        return tracks, corr
-    tracks, corr, pairs[j]["skip_grown"] = _grow_skip_pair(j, *skips[j], tracks, corr, cfg)
-    skips[j] = None
-    return tracks, corr
 
 
 def _in_order(fn, n: int, ahead: bool):
