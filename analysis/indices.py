@@ -99,8 +99,20 @@ def trunk_mask(P: np.ndarray, z_lo: float, z_hi: float, cfg: IndicesConfig, step
     return mask
 
 
-def section_rotation(Q: np.ndarray, x0: float, normals: np.ndarray | None = None, iterations: int = 30) -> float:
-    """Axial rotation (deg) of one transverse section of the trunk, from its mirror symmetry.
+def section_rotation(Q: np.ndarray, x0: float, normals: np.ndarray | None = None, iterations: int = 30,
+                     min_agreement: float = 0.0, agree_mm: float = 5.0) -> float:
+    """Axial rotation (deg) of one transverse section of the trunk, from its mirror symmetry; NaN where the
+    section's mirror image agrees with it on less than ``min_agreement`` of its points (see
+    :func:`section_symmetry`): an arm touching the trunk, or a flank the scan missed, makes the outline
+    asymmetric for reasons other than a rotation."""
+    rotation, agreement = section_symmetry(Q, x0, normals, iterations, agree_mm)
+    return rotation if agreement >= min_agreement else float("nan")
+
+
+def section_symmetry(Q: np.ndarray, x0: float, normals: np.ndarray | None = None, iterations: int = 30,
+                     agree_mm: float = 5.0) -> tuple[float, float]:
+    """Axial rotation (deg) of one transverse section of the trunk, from its mirror symmetry, and the share of
+    the section's points whose registered mirror image lies within ``agree_mm`` (mm) of the outline.
 
     ``Q``: (n, 2) patient-frame ``x`` (left) and ``y`` (posterior) of the section's points, back and front, arms
     cut off; ``normals``: their outward normals' horizontal parts (n, 2). The section reflected about ``x = x0``
@@ -114,15 +126,16 @@ def section_rotation(Q: np.ndarray, x0: float, normals: np.ndarray | None = None
     from scipy.spatial import cKDTree
 
     Q = np.asarray(Q, float)
+    nan = (float("nan"), float("nan"))
     if len(Q) < 60 or not np.isfinite(x0):
-        return float("nan")
+        return nan
     if normals is not None:
         Nn = np.asarray(normals, float)
         ln = np.linalg.norm(Nn, axis=1)
         ok = ln > 0.3  # points whose normal is mostly horizontal: the outline is well defined there
         Q, Nn = Q[ok], Nn[ok] / ln[ok, None]
         if len(Q) < 60:
-            return float("nan")
+            return nan
     M = np.diag([-1.0, 1.0])
     R, t = np.eye(2), np.array([2.0 * x0, 0.0])
     tree = cKDTree(Q)
@@ -132,7 +145,7 @@ def section_rotation(Q: np.ndarray, x0: float, normals: np.ndarray | None = None
         d, j = tree.query(S)
         keep = d <= max(3.0 * np.median(d), 2.0)
         if keep.sum() < 30:
-            return float("nan")
+            return nan
         A, B = S[keep], Q[j[keep]]
         if normals is None:
             ma, mb = A.mean(axis=0), B.mean(axis=0)
@@ -158,7 +171,8 @@ def section_rotation(Q: np.ndarray, x0: float, normals: np.ndarray | None = None
     # R·M is the reflection about the axis at angle 90° + phi/2 from +x (x left, y posterior): phi/2 from the
     # posterior direction, positive towards +x; the right (-x) back coming backwards turns it towards -x
     phi = np.degrees(np.arctan2(R[1, 0], R[0, 0]))
-    return float(-phi / 2)
+    agreement = float(np.mean(tree.query(QM @ R.T + t)[0] <= agree_mm))
+    return float(-phi / 2), agreement
 
 
 def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: dict | None = None) -> TorsoAnalysis:
@@ -262,7 +276,9 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         m = slope_at(dmap.x, row, x0, ic.rotation_window_mm)
         rot = float(np.degrees(np.arctan(-m)))  # right side higher -> positive
         sec = trunk_mask(P, z - ic.section_half_height_mm, z + ic.section_half_height_mm, ic)
-        sec_rot = section_rotation(P[sec, :2], x0, N[sec, :2], ic.section_iterations)
+        sec_rot, agreement = section_symmetry(P[sec, :2], x0, N[sec, :2], ic.section_iterations)
+        if not agreement >= ic.section_min_agreement:
+            sec_rot = float("nan")  # not mirror-symmetric enough to read (an arm touching the trunk, a flank unseen)
         spine_rot = sec_rot if ic.spine_rotation == "section" and np.isfinite(sec_rot) else rot
         x_spine = x0 - ic.spine_depth_mm * np.sin(np.radians(spine_rot))
         hump, span = prominence_difference(dmap.x, row, x0, ic.hump_range_mm)
@@ -275,6 +291,7 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
             "spine_lateral_deviation_mm": float(-(x_spine - x_line)),
             # the whole transverse section's rotation (a rib hump tilts it far less than the midline skin)
             "surface_rotation_deg": sec_rot,
+            "section_agreement": agreement,  # share of the section's mirror image within 5 mm of its outline
             # rasterstereography's surface rotation: the skin normal at the symmetry line
             "midline_rotation_deg": rot,
             "hump_mm": hump,
