@@ -93,6 +93,25 @@ def test_section_rotation_of_a_turned_ellipse():
     assert got == pytest.approx(8.0, abs=0.05)
 
 
+def test_a_section_with_an_arm_against_the_trunk_gives_no_rotation():
+    from analysis.indices import section_rotation, section_symmetry
+
+    th = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    Q = np.column_stack([140 * np.cos(th), 95 * np.sin(th)])
+    Nn = np.column_stack([np.cos(th) / 140, np.sin(th) / 95])
+    Nn /= np.linalg.norm(Nn, axis=1)[:, None]
+    rot, agreement = section_symmetry(Q, 0.0, Nn)
+    assert agreement > 0.95 and abs(rot) < 0.1
+    # the right arm (-x) touching the trunk: a second outline beside the first, taken in as one section
+    arm = np.column_stack([-175 + 40 * np.cos(th), 10 + 45 * np.sin(th)])
+    keep = arm[:, 0] < -140  # the part of the arm outside the trunk
+    arm_n = np.column_stack([np.cos(th), np.sin(th)])[keep]
+    Qa, Na = np.vstack([Q, arm[keep]]), np.vstack([Nn, arm_n])
+    assert section_symmetry(Qa, 0.0, Na)[1] < 0.7
+    assert np.isnan(section_rotation(Qa, 0.0, Na, min_agreement=0.7))
+    assert np.isfinite(section_rotation(Q, 0.0, Nn, min_agreement=0.7))
+
+
 def test_lateral_deviation_signed_right():
     a, truth = _run(lateral_mm=10.0)
     rep = a.report
