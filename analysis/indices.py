@@ -105,14 +105,14 @@ def section_rotation(Q: np.ndarray, x0: float, normals: np.ndarray | None = None
     section's mirror image agrees with it on less than ``min_agreement`` of its points (see
     :func:`section_symmetry`): an arm touching the trunk, or a flank the scan missed, makes the outline
     asymmetric for reasons other than a rotation."""
-    rotation, agreement = section_symmetry(Q, x0, normals, iterations, agree_mm)
-    return rotation if agreement >= min_agreement else float("nan")
+    return section_symmetry(Q, x0, normals, iterations, min_agreement, agree_mm)[0]
 
 
 def section_symmetry(Q: np.ndarray, x0: float, normals: np.ndarray | None = None, iterations: int = 30,
-                     agree_mm: float = 5.0) -> tuple[float, float]:
+                     min_agreement: float = 0.0, agree_mm: float = 5.0) -> tuple[float, float]:
     """Axial rotation (deg) of one transverse section of the trunk, from its mirror symmetry, and the share of
-    the section's points whose registered mirror image lies within ``agree_mm`` (mm) of the outline.
+    the section's points whose registered mirror image lies within ``agree_mm`` (mm) of the outline; the
+    rotation is NaN where that share is below ``min_agreement``.
 
     ``Q``: (n, 2) patient-frame ``x`` (left) and ``y`` (posterior) of the section's points, back and front, arms
     cut off; ``normals``: their outward normals' horizontal parts (n, 2). The section reflected about ``x = x0``
@@ -172,7 +172,7 @@ def section_symmetry(Q: np.ndarray, x0: float, normals: np.ndarray | None = None
     # posterior direction, positive towards +x; the right (-x) back coming backwards turns it towards -x
     phi = np.degrees(np.arctan2(R[1, 0], R[0, 0]))
     agreement = float(np.mean(tree.query(QM @ R.T + t)[0] <= agree_mm))
-    return float(-phi / 2), agreement
+    return (float(-phi / 2) if agreement >= min_agreement else float("nan")), agreement
 
 
 def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: dict | None = None) -> TorsoAnalysis:
@@ -276,9 +276,9 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         m = slope_at(dmap.x, row, x0, ic.rotation_window_mm)
         rot = float(np.degrees(np.arctan(-m)))  # right side higher -> positive
         sec = trunk_mask(P, z - ic.section_half_height_mm, z + ic.section_half_height_mm, ic)
-        sec_rot, agreement = section_symmetry(P[sec, :2], x0, N[sec, :2], ic.section_iterations)
-        if not agreement >= ic.section_min_agreement:
-            sec_rot = float("nan")  # not mirror-symmetric enough to read (an arm touching the trunk, a flank unseen)
+        # NaN where not mirror-symmetric enough to read (an arm touching the trunk, a flank unseen)
+        sec_rot, agreement = section_symmetry(P[sec, :2], x0, N[sec, :2], ic.section_iterations,
+                                              ic.section_min_agreement)
         spine_rot = sec_rot if ic.spine_rotation == "section" and np.isfinite(sec_rot) else rot
         x_spine = x0 - ic.spine_depth_mm * np.sin(np.radians(spine_rot))
         hump, span = prominence_difference(dmap.x, row, x0, ic.hump_range_mm)
