@@ -105,6 +105,16 @@ class MatchingConfig:
     # preset too (the three pairs of arms A, B with enough squeezed windows), and arm D at paper scale came out as
     # with 0.9 px
     lsm_antialias_px: float = 0.7
+    # an image pair whose blurrier image reads above this (features.blur_sigma, px) is out of focus: its
+    # least-squares matching takes larger windows (more of the blurred pattern's weaker gradients) and blurs the
+    # template by the pair's own blur. Tuned on seed 35, arm A, paper scale, true calibration: in focus the images
+    # read 0.58-0.74 px, the cameras focused 35 cm short at f/4 0.88-1.15 px (the tiny preset 0.47-0.58). There,
+    # in focus (9 px, 0.7 px) RMS 0.034 mm, coverage 94.8 %; defocused 0.095 mm, 83.6 %; defocused with 13 px
+    # 0.067 mm, 88.0 %; 17 px 0.060 mm; 13 px and 1.4 px 0.059 mm; 13 px and 2.0 px 0.054 mm, 89.2 %; 17 px and
+    # 2.0 px 0.054 mm; 13 px and 2.6 px 0.062 mm. The in-focus images matched so: 0.039 mm (hence the switch)
+    blurred_above_px: float = 0.8
+    blurred_lsm_window: int = 15
+    blurred_antialias_px: float = 2.0
     # stage 3, region growing from the matched points (see match_points)
     # rounds (at most; growing stops when a round matches nothing new): each one reaches a little further into
     # steep skin. Paper scale, arm D, coverage / time of the arm: 4 rounds 84.0% / 30.6 s; 12: 85.9% / 35.2 s;
@@ -140,6 +150,15 @@ class MatchingConfig:
     search_chunk: int = 2000
     # blocks run in this many threads (numba, numpy and OpenCV release the GIL); 0: one per core
     threads: int = 0
+
+
+def focus_adapted(cfg: MatchingConfig, blur_px: float) -> MatchingConfig:
+    """The matching settings for an image pair whose blurrier image reads ``blur_px`` (``features.blur_sigma``):
+    ``cfg`` itself in focus (or unknown, NaN), its ``blurred_*`` least-squares settings beyond
+    ``cfg.blurred_above_px``."""
+    if not blur_px > cfg.blurred_above_px:
+        return cfg
+    return replace(cfg, lsm_window=cfg.blurred_lsm_window, lsm_antialias_px=cfg.blurred_antialias_px)
 
 
 def _kernel_array(a, dtype, shape=None) -> np.ndarray:

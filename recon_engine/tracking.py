@@ -31,8 +31,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .epipolar import rectify_pair
-from .features import cell_features, harris_features, region_of_interest
-from .matching import MatchingConfig, grow_matches, match_points, reason_counts
+from .features import blur_sigma, cell_features, harris_features, region_of_interest
+from .matching import MatchingConfig, focus_adapted, grow_matches, match_points, reason_counts
 from .parallel import cores
 
 
@@ -90,10 +90,17 @@ def track_images(images: list, cameras: list, depth_bounds, cfg: TrackingConfig 
     polygons : list of K arrays or None, optional
         User-drawn regions of interest (original pixel coordinates).
 
-    Returns ``{"tracks": (T, K, 2), "ncc": (T, K-1), "pairs": [per-pair figures]}``.
+    Returns ``{"tracks": (T, K, 2), "ncc": (T, K-1), "pairs": [per-pair figures], "blur_px": (K,) each
+    image's blur estimate (``features.blur_sigma``)}``.
     """
     cfg = cfg or TrackingConfig()
     K = len(images)
+    with ThreadPoolExecutor(cores(cfg.matching.threads)) as pool:
+        blur = list(pool.map(blur_sigma, images))
+
+    def pair_cfg(j, k):
+        """``cfg`` with the matching settings for images j and k's focus (``matching.focus_adapted``)."""
+        return replace(cfg, matching=focus_adapted(cfg.matching, max(blur[j], blur[k])))
     tracks = np.zeros((0, K, 2))
     corr = np.zeros((0, K - 1))
     pairs = []
@@ -128,7 +135,7 @@ def track_images(images: list, cameras: list, depth_bounds, cfg: TrackingConfig 
         wide_right = wide.resample("right", np.asarray(images[j + 2], dtype=np.float32))
         tracks, corr, pairs[j]["skip_grown"] = _grow_skip_pair(j, wide, wide_left, wide_right,
                                                                features(wide, "left", wide_left, j)[0], tracks,
-                                                               corr, cfg)
+                                                               corr, pair_cfg(j, j + 2))
         return tracks, corr
 
     # with more than one thread the next pair is prepared on another (OpenCV releases the GIL) while this one is
@@ -141,17 +148,21 @@ def track_images(images: list, cameras: list, depth_bounds, cfg: TrackingConfig 
         if back is not None:
             # image k's features in pair k-1's rectification (the right image)
             features_k = back[0].to_rectified("right", pair.to_original("left", fresh))
-            tracks, corr, pairs[k - 1]["grown_back"] = _grow_back(k - 1, *back, features_k, tracks, corr, cfg)
+            tracks, corr, pairs[k - 1]["grown_back"] = _grow_back(k - 1, *back, features_k, tracks, corr,
+                                                                  pair_cfg(k - 1, k))
             back = None  # pair k-1's images are freed before pair k is matched
         tracks, corr = grow_skip(k - 2, tracks, corr)
-        tracks, corr, figures, back = _track_pair(k, *prepared, tracks, corr, depth_bounds, cfg)
+        here = pair_cfg(k, k + 1)
+        tracks, corr, figures, back = _track_pair(k, *prepared, tracks, corr, depth_bounds, here)
+        figures["blur_px"] = round(max(blur[k], blur[k + 1]), 3)
+        figures["out_of_focus"] = here.matching is not cfg.matching  # matched with the blurred_* settings
         pairs.append(figures)
     if back is not None:
         # the last image has no pair of its own: its features in the last pair's rectification
         tracks, corr, pairs[-1]["grown_back"] = _grow_back(K - 2, *back, features(back[0], "right", back[2], K - 1)[0],
-                                                           tracks, corr, cfg)
+                                                           tracks, corr, pair_cfg(K - 2, K - 1))
     tracks, corr = grow_skip(K - 3, tracks, corr)
-    return {"tracks": tracks, "ncc": corr, "pairs": pairs}
+    return {"tracks": tracks, "ncc": corr, "pairs": pairs, "blur_px": np.array(blur)}
 
 
 def fill_cell_px(pair, depth_bounds, roi: np.ndarray, n_features: int, spacing_mm: float) -> int:

@@ -71,3 +71,34 @@ def test_the_fill_starts_only_where_the_features_lie_farther_apart_on_the_skin_t
     assert fill_cell_px(Pair(), (1900.0, 2100.0), roi, 400, 6.0) == 0  # closer than asked already
     assert fill_cell_px(Pair(), lambda pair: (1900.0, 2100.0), roi, 400, 0.0) == 0  # off
     assert fill_cell_px(Pair(), (1900.0, 2100.0), roi, 400, 0.5) == 2  # never finer than 2 px
+
+
+def _cells(seed=5):
+    rng = np.random.default_rng(seed)
+    cells = (rng.random((70, 100)) > 0.5).astype(np.float32) * 200 + 20
+    return np.kron(cells, np.ones((3, 3), np.float32))  # a projected pattern of 3-px cells
+
+
+def test_the_blur_estimate_orders_images_by_their_blur_and_leaves_them_unchanged():
+    import cv2
+
+    from recon_engine.features import blur_sigma
+
+    pattern = _cells()
+    images = [cv2.GaussianBlur(pattern, (0, 0), s) for s in (0.6, 0.9, 1.3, 1.8)]
+    before = [im.copy() for im in images]
+    blur = [blur_sigma(im) for im in images]
+    assert np.all(np.diff(blur) > 0.05), blur
+    assert all(np.array_equal(a, b) for a, b in zip(images, before))
+    assert np.isnan(blur_sigma(np.full((50, 50), 90, np.uint8)))  # no edges: unknown, not sharp
+
+
+def test_an_out_of_focus_pair_is_matched_with_the_larger_least_squares_windows():
+    from recon_engine.matching import MatchingConfig, focus_adapted
+
+    cfg = MatchingConfig()
+    assert focus_adapted(cfg, cfg.blurred_above_px - 0.01) is cfg
+    assert focus_adapted(cfg, float("nan")) is cfg
+    blurred = focus_adapted(cfg, cfg.blurred_above_px + 0.01)
+    assert (blurred.lsm_window, blurred.lsm_antialias_px) == (cfg.blurred_lsm_window, cfg.blurred_antialias_px)
+    assert blurred.lsm_window > cfg.lsm_window and blurred.window == cfg.window
