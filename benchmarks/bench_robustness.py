@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
 import sys
 import time
 from dataclasses import replace
@@ -109,6 +110,13 @@ def run_condition(folder: Path, arm: str, peers: set, ours: bool = True) -> dict
                        pycolmap_work=folder.parent / f"pycolmap-{folder.name}")
 
 
+def stamped(figures: dict) -> dict:
+    """Each method's figures with the commit that measured them (rows can mix runs: ``--keep-peers``)."""
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=Path(__file__).resolve().parents[1]).stdout.strip()
+    return {k: ({**v, "commit": commit} if isinstance(v, dict) else v) for k, v in figures.items()}
+
+
 def ratios(rows: dict) -> dict:
     """Per condition: ours against the clean capture, and each peer's RMS and p95 over ours."""
     clean = rows.get("clean", {}).get("ours")
@@ -157,6 +165,9 @@ def main() -> int:
     ap.add_argument("--out", default="bench-out/robustness", help="scenarios are kept here and reused")
     ap.add_argument("--json", default="bench-out/bench_robustness.json")
     ap.add_argument("--table", action="store_true", help="print the JSON's table in markdown and stop")
+    ap.add_argument("--keep-peers", action="store_true",
+                    help="run ours (and --peers) again, keeping the other peers' figures already in the JSON: the "
+                         "scenarios are rendered the same from the same seed, so the peers' inputs are unchanged")
     ap.add_argument("--add-peers", action="store_true",
                     help="run only --peers on conditions already in the JSON, keeping their other figures")
     args = ap.parse_args()
@@ -183,9 +194,11 @@ def main() -> int:
             simulate(folder, scenario_for(name, args.preset, args.seed, ids), progress=lambda m: None)
         t_sim = time.perf_counter() - t0
         if args.add_peers and name in rows:
-            row = {**rows[name], **run_condition(folder, args.arm, peers, ours=False)}
+            fresh = run_condition(folder, args.arm, peers, ours=False)
+            row = {**rows[name], **stamped(fresh)}
         else:
-            row = run_condition(folder, args.arm, peers)
+            fresh = stamped(run_condition(folder, args.arm, peers))
+            row = {**rows.get(name, {}), **fresh} if args.keep_peers else fresh
             row["what"] = CONDITIONS[name][0]
             row["simulated_s"] = t_sim
         rows[name] = row

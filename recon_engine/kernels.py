@@ -222,10 +222,11 @@ def _invert(N, k, inv):
 
 
 @numba.njit(inline="always", **_JIT)
-def _projected_normals(sd, k, centred, ridge, N):
-    """Steepest-descent images ``sd[:k]`` (in place) with a radiometric offset (their mean) and gain (the
-    mean-free window ``centred``) projected out, and ``N`` = their normal equations plus ``ridge`` times the
-    trace on the diagonal."""
+def _projected_normals(sd, k, centred, w, msum, ridge, N):
+    """Steepest-descent images ``sd[:k]`` (in place, 0 where the 0/1 weights ``w`` are 0) with a radiometric
+    offset (their mean over the ``msum`` pixels of weight 1) and gain (the mean-free window ``centred``, 0 where
+    ``w`` is) projected out, and ``N`` = their normal equations plus ``ridge`` times the trace on the
+    diagonal."""
     m = sd.shape[1]
     c2 = 0.0
     for q in range(m):
@@ -235,10 +236,10 @@ def _projected_normals(sd, k, centred, ridge, N):
         mean = 0.0
         for q in range(m):
             mean += sd[a, q]
-        mean /= m
+        mean /= msum
         dot = 0.0
         for q in range(m):
-            sd[a, q] -= mean
+            sd[a, q] -= mean * w[q]
             dot += sd[a, q] * centred[q]
         f = dot / c2
         for q in range(m):
@@ -257,17 +258,18 @@ def _projected_normals(sd, k, centred, ridge, N):
 
 
 @numba.njit(inline="always", **_JIT)
-def _gain(R, Lc, centre):
+def _gain(R, Lc, w, msum, centre):
     """Radiometric gain of window ``R`` (M,) against the mean-free template ``Lc``: ``(gain, Σ Rc·Lc, Σ Rc²)``
-    with ``Rc`` = ``R`` made mean-free (left in ``R`` with ``centre``)."""
+    over the ``msum`` pixels of 0/1 weight ``w`` 1, with ``Rc`` = ``R`` made mean-free there and 0 elsewhere
+    (left in ``R`` with ``centre``)."""
     m = R.shape[0]
     mean = 0.0
     for q in range(m):
-        mean += R[q]
-    mean /= m
+        mean += R[q] * w[q]
+    mean /= msum
     num, rr = 0.0, 0.0
     for q in range(m):
-        c = R[q] - mean
+        c = (R[q] - mean) * w[q]
         if centre:
             R[q] = c
         num += c * Lc[q]
@@ -276,12 +278,15 @@ def _gain(R, Lc, centre):
 
 
 @numba.njit(**_JIT)
-def lsm_points(left, right, xy_left, xy_right, window, iterations, shift_y, initial_scale, initial_shear, blur_px):
+def lsm_points(left, right, xy_left, xy_right, window, iterations, shift_y, initial_scale, initial_shear, blur_px,
+               clip):
     """Adaptive least-squares matching of each point (see ``matching.least_squares_refine``, which documents the
     model): the inverse-compositional solution of an affine warp along the row (x shift, stretch, shear) and a
     y shift, with the radiometric gain and offset projected out, and the x shift's precision from the right
     window's gradients at the solution. Point p's template is blurred along its rows by a Gaussian of sigma
-    ``blur_px[p]`` (template px, at most 3; none below 0.05): the detail of a squeezed right window.
+    ``blur_px[p]`` (template px, at most 3; none below 0.05): the detail of a squeezed right window. Pixels
+    at or next to a grey level of ``clip`` or more (saturated: the template's, or the right window's where it
+    starts) take no part; a point with more than half its window so is not converged.
 
     Returns ``(xy (N, 2) px, sigma (N,) px, rho (N,), converged (N,), stretch (N,), shear (N,))`` at the
     solution.
@@ -317,6 +322,7 @@ def lsm_points(left, right, xy_left, xy_right, window, iterations, shift_y, init
     Rv = np.empty(m)
     R2 = Rv.reshape((window, window))  # the right window as rows (a view of Rv)
     d = np.empty(4)
+    w = np.empty(m)
     for p in range(n):
         xl, yl = xy_left[p, 0], xy_left[p, 1]
         s_start, t_start = initial_scale[p], initial_shear[p]
@@ -340,32 +346,48 @@ def lsm_points(left, right, xy_left, xy_right, window, iterations, shift_y, init
         else:
             for i in range(wide):
                 _sample_row(left, xl - h - 1, 1.0, yl + (i - h - 1), T, i)
+        # the right window where it starts: its saturated pixels are masked for the whole solution
+        bx, by = xy_right[p, 0], xy_right[p, 1]
+        for i in range(window):
+            _sample_row(right, bx - s_start * h + t_start * (i - h), s_start, by + (i - h), R2, i)
+        msum = 0.0
+        for i in range(window):
+            for j in range(window):
+                q = i * window + j
+                # a saturated pixel, or one whose gradient a saturated neighbour enters, takes no part; in the
+                # right window its neighbours too (the window moves by up to a pixel)
+                bright = max(T[i + 1, j + 1], T[i + 1, j], T[i + 1, j + 2], T[i, j + 1], T[i + 2, j + 1], R2[i, j],
+                             R2[i, max(j - 1, 0)], R2[i, min(j + 1, window - 1)], R2[max(i - 1, 0), j],
+                             R2[min(i + 1, window - 1), j])
+                w[q] = 0.0 if bright >= clip else 1.0
+                msum += w[q]
         mean = 0.0
         for i in range(window):
             for j in range(window):
                 q = i * window + j
                 L[q] = T[i + 1, j + 1]
-                gx = 0.5 * (T[i + 1, j + 2] - T[i + 1, j])
+                gx = 0.5 * (T[i + 1, j + 2] - T[i + 1, j]) * w[q]
                 sd[0, q] = gx
                 sd[1, q] = gx * ex[q]
                 sd[2, q] = gx * ey[q]
-                sd[3, q] = 0.5 * (T[i + 2, j + 1] - T[i, j + 1])
-                mean += L[q]
-        mean /= m
+                sd[3, q] = 0.5 * (T[i + 2, j + 1] - T[i, j + 1]) * w[q]
+                mean += L[q] * w[q]
+        msum = max(msum, 1.0)
+        mean /= msum
         Lc2 = 0.0
         for q in range(m):
-            Lc[q] = L[q] - mean
+            Lc[q] = (L[q] - mean) * w[q]
             Lc2 += Lc[q] * Lc[q]
         Lc2 = max(Lc2, 1e-12)
-        _projected_normals(sd, k, Lc, 1e-9, N)
-        ok = _invert(N, k, Ninv) != 0.0  # a flat template has no geometry to fit
+        _projected_normals(sd, k, Lc, w, msum, 1e-9, N)
+        # a flat template has no geometry to fit; one mostly saturated, too few pixels to trust
+        ok = _invert(N, k, Ninv) != 0.0 and 2.0 * msum > m
         for a in range(k):
             for q in range(m):
                 v = 0.0
                 for b in range(k):
                     v += Ninv[a, b] * sd[b, q]
                 step[a, q] = v
-        bx, by = xy_right[p, 0], xy_right[p, 1]
         s, t, a0, b0 = s_start, t_start, 0.0, 0.0
         active = ok
         Rv[:] = 0.0
@@ -373,7 +395,7 @@ def lsm_points(left, right, xy_left, xy_right, window, iterations, shift_y, init
             for _ in range(iterations):
                 for i in range(window):  # the warped window, row by row: x = ... + s·dx + t·dy
                     _sample_row(right, bx + a0 - s * h + t * (i - h), s, by + b0 + (i - h), R2, i)
-                gain = _gain(Rv, Lc, False)[0]
+                gain = _gain(Rv, Lc, w, msum, False)[0]
                 # the projected steepest-descent images are orthogonal to the offset and the template, so the
                 # residual gain·R + offset − L reduces to gain·R
                 for a in range(k):
@@ -398,12 +420,12 @@ def lsm_points(left, right, xy_left, xy_right, window, iterations, shift_y, init
         # the residuals and correlation at the last right window; the x shift's precision from the right
         # window's own gradients there (central differences, the image's border repeated), as the forward
         # adjustment (Gruen's) has it
-        gain, num, rr = _gain(Rv, Lc, True)
+        gain, num, rr = _gain(Rv, Lc, w, msum, True)
         res2 = 0.0
         for q in range(m):
             e = gain * Rv[q] - Lc[q]
             res2 += e * e
-        s0 = sqrt(res2 / (m - k - 2))
+        s0 = sqrt(res2 / max(msum - k - 2, 1.0))
         for q in range(m):
             x = bx + a0 + s * ex[q] + t * ey[q]
             y = by + b0 + ey[q]
@@ -419,12 +441,12 @@ def lsm_points(left, right, xy_left, xy_right, window, iterations, shift_y, init
                         wgt = (fx if cx else 1.0 - fx) * (fy if cy else 1.0 - fy)
                         gxs += wgt * 0.5 * (right[jy, min(jx + 1, W - 1)] - right[jy, max(jx - 1, 0)])
                         gys += wgt * 0.5 * (right[min(jy + 1, H - 1), jx] - right[max(jy - 1, 0), jx])
-            gxs *= gain
+            gxs *= gain * w[q]
             sd[0, q] = gxs
             sd[1, q] = gxs * ex[q]
             sd[2, q] = gxs * ey[q]
-            sd[3, q] = gys * gain
-        _projected_normals(sd, k, Rv, 1e-12, N)
+            sd[3, q] = gys * gain * w[q]
+        _projected_normals(sd, k, Rv, w, msum, 1e-12, N)
         var = np.inf
         if _invert(N, k, Ninv) != 0.0:
             var = abs(Ninv[0, 0])
@@ -450,4 +472,4 @@ def warm_up() -> None:
     one = np.ones(1)
     xy = np.full((1, 2), 16.0)
     ncc_points(img, img, xy, xy[:, 0].copy(), one, one * 0, 1, 1, 3, 1)
-    lsm_points(img, img, xy, xy.copy(), 3, 1, True, one, one * 0, one * 0)
+    lsm_points(img, img, xy, xy.copy(), 3, 1, True, one, one * 0, one * 0, np.inf)

@@ -173,6 +173,13 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     tr = track_images(images, cams, lambda p: subject_depth_bounds(p, centre, cfg.subject_radius_mm),
                       cfg.tracking, polys)
     t2 = time.perf_counter()
+    focus = cfg.tracking.matching.blurred_above_px
+    for cam_id, blur in zip(used, tr["blur_px"]):
+        if blur > focus:
+            # matched with the out-of-focus settings, which recover much but not all of the precision
+            warnings.append(f"image {cam_id}: blurred (estimate {blur:.2f} px; in focus below {focus:.2f}): its "
+                            f"points are less precise; check that camera's focus and scan again")
+            progress(f"arm {arm_id}: {warnings[-1]}")
     progress(f"arm {arm_id}: intersecting {len(tr['tracks'])} tracks")
     res = intersect(cams, tr["tracks"], cfg.intersection)
     t3 = time.perf_counter()
@@ -184,6 +191,7 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     report = {
         "arm": arm_id, "cameras": used, "unusable_images": unusable, "warnings": warnings,
         "points": int(keep.sum()), "tracks": int(len(tr["tracks"])), "dropped": dropped,
+        "blur_px": {c: round(float(b), 3) for c, b in zip(used, tr["blur_px"])},
         "rays_per_point": {str(k): int((rays == k).sum()) for k in range(2, len(used) + 1)},
         "removed_rays": int(np.isfinite(tr["tracks"][..., 0]).sum() - res["used"].sum()),
         "sigma_mm_median": float(np.median(sigma[keep])) if keep.any() else None,

@@ -81,7 +81,7 @@ def track_images(images: list, cameras: list, depth_bounds, cfg: TrackingConfig 
     Parameters
     ----------
     images : list of K (H, W) arrays
-        Grey images in the arm's order.
+        Grey images in the arm's order: integers at their type's full scale, or floats in 8-bit levels.
     cameras : list of K Camera
         Their IOPs and EOPs.
     depth_bounds : callable or (float, float)
@@ -97,6 +97,11 @@ def track_images(images: list, cameras: list, depth_bounds, cfg: TrackingConfig 
     K = len(images)
     with ThreadPoolExecutor(cores(cfg.matching.threads)) as pool:
         blur = list(pool.map(blur_sigma, images))
+    # the images' full scale, what least-squares matching counts as saturated: an integer type's largest value;
+    # float images are in 8-bit levels (as reconstruct_arm gives a 16-bit image)
+    full = max(np.iinfo(im.dtype).max if np.issubdtype(im.dtype, np.integer) else 255.0 for im in images)
+    matching = replace(cfg.matching, saturated_level=cfg.matching.saturated_share * full)
+    cfg = replace(cfg, matching=matching)
 
     def pair_cfg(j, k):
         """``cfg`` with the matching settings for images j and k's focus (``matching.focus_adapted``)."""

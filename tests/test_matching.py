@@ -299,3 +299,31 @@ def test_the_template_blurred_to_a_squeezed_windows_detail_matches_it_more_often
     good, err = refined(0.6)  # the synthetic ramp has no light diffused in the skin: less blur than the default
     assert plain.mean() < 0.7 and good.mean() > 0.9
     assert np.percentile(err[good], 95) < 0.8 * np.percentile(err_plain[plain], 95) and err[good].max() < 0.5
+
+
+def test_least_squares_matching_leaves_out_a_highlight_saturated_in_one_view():
+    rng = np.random.default_rng(7)
+    cells = (rng.random((60, 80)) > 0.5).astype(np.float32) * 150 + 40
+    left = cv2.GaussianBlur(np.kron(cells, np.ones((3, 3), np.float32)), (0, 0), 0.8)
+    right = cv2.warpAffine(left, np.float32([[1, 0, 10.4], [0, 1, 0]]), (left.shape[1], left.shape[0]))
+    xy = np.column_stack([np.tile(np.arange(30, 211, 20), 8), np.repeat(np.arange(25, 166, 20), 10)]).astype(float)
+    xy += rng.uniform(-3, 3, xy.shape)
+    # beside every other point a highlight, clipped at 255, in the right view only (it moves with the view)
+    hit = np.arange(len(xy)) % 2 == 0
+    yy, xx = np.mgrid[:left.shape[0], :left.shape[1]]
+    glare = sum(400 * np.exp(-((xx - (x + 12.9)) ** 2 + (yy - y) ** 2) / 4.5) for x, y in xy[hit])
+    right = np.minimum(np.round(right + glare), 255).astype(np.float32)
+    before = right.copy()
+    plain = least_squares_refine(left, right, xy, xy + [10.7, 0.2], window=9)
+    masked = least_squares_refine(left, right, xy, xy + [10.7, 0.2], window=9, clip=250.0)
+    assert np.array_equal(right, before)
+
+    def error(r, which):
+        ok = r["converged"] & which
+        return np.median(np.abs(r["xy"][ok, 0] - (xy[ok, 0] + 10.4))), ok.sum() / which.sum()
+
+    (e_plain, c_plain), (e_masked, c_masked) = error(plain, hit), error(masked, hit)
+    assert e_masked < 0.6 * e_plain and c_masked > c_plain
+    # where nothing is saturated, nothing changes
+    assert np.array_equal(plain["xy"][~hit], masked["xy"][~hit])
+    assert np.array_equal(plain["sigma"][~hit], masked["sigma"][~hit])

@@ -96,6 +96,23 @@ def test_an_image_one_stop_over_is_used_and_named_in_the_warnings(torso_scenario
     assert warning.startswith("image A3: ") and "saturated" in warning and "exposure" in warning
 
 
+def test_a_blurred_image_is_matched_with_its_blur_and_named_in_the_warnings(arm_a, tmp_path):
+    from recon_engine.reconstruction import ReconstructionConfig
+
+    rig, cal, cap, (_, clean) = arm_a
+    assert all(b < 0.8 for b in clean["blur_px"].values()), clean["blur_px"]
+    imgs = load_images(cap, rig)
+    imgs["A3"] = cv2.GaussianBlur(imgs["A3"], (0, 0), 1.6)  # out of focus
+    write_capture(tmp_path / "blurred", kind="torso", rig=rig.serial, captured_at=cap.captured_at, images=imgs)
+    # the sharpness check would refuse an image this blurred at the tiny preset's 2 mm pixels: lowered here
+    cfg = ReconstructionConfig(min_sharpness=0.1)
+    _, report = reconstruct_arm(read_capture(tmp_path / "blurred", rig), rig, cal, "A", cfg)
+    assert "A3" in report["cameras"] and report["blur_px"]["A3"] > cfg.tracking.matching.blurred_above_px
+    (warning,) = report["warnings"]
+    assert warning.startswith("image A3: blurred") and "focus" in warning
+    assert [p["out_of_focus"] for p in report["pairs"]] == [False, True, True, False]
+
+
 def test_it_refuses_an_unknown_arm(arm_a):
     rig, cal, cap, _ = arm_a
     with pytest.raises(ValueError, match="no arm 'Z'"):
