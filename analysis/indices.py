@@ -99,15 +99,6 @@ def trunk_mask(P: np.ndarray, z_lo: float, z_hi: float, cfg: IndicesConfig, step
     return mask
 
 
-def section_rotation(Q: np.ndarray, x0: float, normals: np.ndarray | None = None, iterations: int = 30,
-                     min_agreement: float = 0.0, agree_mm: float = 5.0) -> float:
-    """Axial rotation (deg) of one transverse section of the trunk, from its mirror symmetry; NaN where the
-    section's mirror image agrees with it on less than ``min_agreement`` of its points (see
-    :func:`section_symmetry`): an arm touching the trunk, or a flank the scan missed, makes the outline
-    asymmetric for reasons other than a rotation."""
-    return section_symmetry(Q, x0, normals, iterations, min_agreement, agree_mm)[0]
-
-
 def section_symmetry(Q: np.ndarray, x0: float, normals: np.ndarray | None = None, iterations: int = 30,
                      min_agreement: float = 0.0, agree_mm: float = 5.0) -> tuple[float, float]:
     """Axial rotation (deg) of one transverse section of the trunk, from its mirror symmetry, and the share of

@@ -81,7 +81,7 @@ def test_surface_rotation_little_affected_by_a_hump():
 
 
 def test_section_rotation_of_a_turned_ellipse():
-    from analysis.indices import section_rotation
+    from analysis.indices import section_symmetry
 
     th = np.linspace(0, 2 * np.pi, 400, endpoint=False)
     Q = np.column_stack([140 * np.cos(th), 95 * np.sin(th)])
@@ -89,12 +89,12 @@ def test_section_rotation_of_a_turned_ellipse():
     Nn /= np.linalg.norm(Nn, axis=1)[:, None]
     a = np.radians(-8.0)  # turned clockwise seen from above (x left, y posterior): the right back comes backwards
     Rz = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-    got = section_rotation(Q @ Rz.T + [5.0, 3.0], 5.0, Nn @ Rz.T)
+    got = section_symmetry(Q @ Rz.T + [5.0, 3.0], 5.0, Nn @ Rz.T)[0]
     assert got == pytest.approx(8.0, abs=0.05)
 
 
 def test_a_section_with_an_arm_against_the_trunk_gives_no_rotation():
-    from analysis.indices import section_rotation, section_symmetry
+    from analysis.indices import section_symmetry
 
     th = np.linspace(0, 2 * np.pi, 400, endpoint=False)
     Q = np.column_stack([140 * np.cos(th), 95 * np.sin(th)])
@@ -108,8 +108,8 @@ def test_a_section_with_an_arm_against_the_trunk_gives_no_rotation():
     arm_n = np.column_stack([np.cos(th), np.sin(th)])[keep]
     Qa, Na = np.vstack([Q, arm[keep]]), np.vstack([Nn, arm_n])
     assert section_symmetry(Qa, 0.0, Na)[1] < 0.7
-    assert np.isnan(section_rotation(Qa, 0.0, Na, min_agreement=0.7))
-    assert np.isfinite(section_rotation(Q, 0.0, Nn, min_agreement=0.7))
+    assert np.isnan(section_symmetry(Qa, 0.0, Na, min_agreement=0.7)[0])
+    assert np.isfinite(section_symmetry(Q, 0.0, Nn, min_agreement=0.7)[0])
 
 
 def test_lateral_deviation_signed_right():
