@@ -75,7 +75,14 @@ def _summary(sections, key):
     that way. An S-curve has one of each; a signed maximum alone jumps sides when the two are close.
     """
     vals = np.array([s[key] for s in sections], float)
-    out = {"rms": rms(vals), "max": signed_max(vals)}
+    return {"rms": rms(vals), "max": signed_max(vals), **_sides(sections, key)}
+
+
+def _sides(sections, key):
+    """``{"right", "left"}``: each side's largest value of ``key`` over the sections, with its level (see
+    :func:`_summary`)."""
+    vals = np.array([s[key] for s in sections], float)
+    out = {}
     z_sp = sections[0]["z_mm"] - sections[0]["level"] * (sections[1]["z_mm"] - sections[0]["z_mm"]) / \
         max(sections[1]["level"] - sections[0]["level"], 1e-9) if len(sections) > 1 else sections[0]["z_mm"]
     for side, sign in (("right", 1.0), ("left", -1.0)):
@@ -348,6 +355,9 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         "midline_rotation_deg": _summary(sections, "midline_rotation_deg"),
         "hump_mm": signed_max([s["hump_mm"] for s in sections]),
         "hump_angle_deg": signed_max([s["hump_angle_deg"] for s in sections]),
+        # the hump on each side: an S curve's two humps can be nearly equal, and its signed maximum jumps sides
+        "hump": {"max": signed_max([s["hump_mm"] for s in sections]), **_sides(sections, "hump_mm")},
+        "hump_angle": {"max": signed_max([s["hump_angle_deg"] for s in sections]), **_sides(sections, "hump_angle_deg")},
         "trunk_imbalance_mm": float(-(vp[0] - sp[0])),
         "trunk_inclination_mm": float(vp[1] - sp[1]),
         "trunk_length_mm": float(np.linalg.norm(vp - sp)),
@@ -402,7 +412,7 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
 # figures that read the back in the patient frame: with the back and front (and so left and right) in doubt,
 # none of them can be told; the trunk's length and the whole-torso asymmetry do not depend on the facing
 SIDED = ("lateral_deviation_mm", "surface_rotation_deg", "spine_lateral_deviation_mm", "midline_rotation_deg",
-         "hump_mm", "hump_angle_deg", "trunk_imbalance_mm", "trunk_inclination_mm", "regions", "apex",
+         "hump_mm", "hump_angle_deg", "hump", "hump_angle", "trunk_imbalance_mm", "trunk_inclination_mm", "regions", "apex",
          "cobb_estimate_deg", "cobb_estimate", "pelvic_obliquity_mm", "pelvic_obliquity_deg", "pelvic_torsion_deg")
 
 # figures read at the lumbar dimples

@@ -49,10 +49,17 @@ INDEX_FIGURES = ("lateral_deviation_mm.rms", "lateral_deviation_mm.max", "surfac
                  "kyphotic_angle_deg", "lordotic_angle_deg", "pelvic_obliquity_mm", "pelvic_torsion_deg")
 
 
+# figures the spec keeps as one signed number, whose sides the report gives under another key
+SIDED_SCALARS = {"hump_mm": "hump", "hump_angle_deg": "hump_angle"}
+
+
 def _side_sizes(report: dict, key: str):
     """``{"right": size, "left": size}`` of an index that reports each side's largest value (``X.max`` of an index
-    with ``right`` / ``left`` entries; a side without one is 0), or None."""
+    with ``right`` / ``left`` entries, or a signed figure of :data:`SIDED_SCALARS`; a side without one is 0), or
+    None."""
     base, _, leaf = key.partition(".")
+    if key in SIDED_SCALARS:
+        base, leaf = SIDED_SCALARS[key], "max"
     entry = report.get(base)
     if leaf != "max" or not isinstance(entry, dict) or not ("right" in entry or "left" in entry):
         return None

@@ -14,6 +14,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from analysis.repeatability import SIDED_SCALARS
+
 
 @dataclass(frozen=True)
 class Index:
@@ -227,8 +229,12 @@ def sides(indices: dict, key: str) -> list[dict]:
     entry = indices.get(base)
     if isinstance(entry, dict) and ("right" in entry or "left" in entry):
         found = {s: entry.get(s) for s in ("right", "left")}
-    elif base in ("hump_mm", "hump_angle_deg"):
-        found = _sides_from_sections(indices.get("sections"), base)
+    elif base in SIDED_SCALARS:
+        sided = indices.get(SIDED_SCALARS[base])
+        if isinstance(sided, dict) and ("right" in sided or "left" in sided):
+            found = {s: sided.get(s) for s in ("right", "left")}
+        else:  # a report from before the hump's sides were stored
+            found = _sides_from_sections(indices.get("sections"), base)
     else:
         return []
     ix = index(key)

@@ -127,6 +127,11 @@ def test_hump_height():
     # the synthetic hump is scaled by how squarely the skin faces backwards (sin^2 of its polar angle, 0.67 at
     # 70 mm from the spine): the right prominence stands 5.3 mm above the left one
     assert a.report["hump_mm"] == pytest.approx(0.67 * 8.0, abs=1.0)
+    # and on which side, at which level: the right one, the largest section's
+    sides = a.report["hump"]
+    assert sides["right"]["size"] == pytest.approx(a.report["hump_mm"]) and sides["max"] == a.report["hump_mm"]
+    assert sides["left"] is None or sides["left"]["size"] < 1.0
+    assert a.report["hump_angle"]["right"]["size"] == pytest.approx(a.report["hump_angle_deg"])
 
 
 def test_hump_hardly_moves_with_the_symmetry_point():
