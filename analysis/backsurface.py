@@ -74,44 +74,6 @@ def depth_map(P: np.ndarray, N: np.ndarray, cfg: IndicesConfig, half_width_mm: f
     return DepthMap(xs, zs, depth)
 
 
-def symmetry_point(x: np.ndarray, profile: np.ndarray, centre: float, cfg: IndicesConfig) -> tuple[float, float]:
-    """Where a horizontal profile is most nearly mirror-symmetric, near ``centre`` (mm); and the misfit (mm RMS).
-
-    For a candidate ``x0`` the profile's right half is compared with its left
-    half mirrored, after removing a linear tilt (a rotated symmetric profile is,
-    to first order, symmetric plus a tilt): residual of
-    ``d(x0+u) - d(x0-u) = 2·a·u`` for ``0 < u <= symmetry_window_mm``.
-    """
-    u = np.arange(cfg.grid_mm, cfg.symmetry_window_mm + 1e-9, cfg.grid_mm)
-    cands = np.arange(centre - cfg.symmetry_search_mm, centre + cfg.symmetry_search_mm + 1e-9, 1.0)
-    good = np.isfinite(profile)
-    if good.sum() < 10:
-        return np.nan, np.nan
-    xp, dp = x[good], profile[good]
-    a = np.interp(cands[:, None] + u[None, :], xp, dp, left=np.nan, right=np.nan)
-    b = np.interp(cands[:, None] - u[None, :], xp, dp, left=np.nan, right=np.nan)
-    diff = a - b
-    ok = np.isfinite(diff)
-    uu = np.where(ok, u[None, :], 0.0)
-    dd = np.where(ok, diff, 0.0)
-    n_ok = ok.sum(axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        slope = (dd * uu).sum(axis=1) / (uu * uu).sum(axis=1)
-        res = np.where(ok, dd - slope[:, None] * uu, 0.0)
-        cost = np.sqrt((res ** 2).sum(axis=1) / n_ok)
-    cost = np.where((n_ok >= 0.8 * len(u)) & np.isfinite(cost), cost, np.inf)
-    k = int(np.argmin(cost))
-    if not np.isfinite(cost[k]):
-        return np.nan, np.nan
-    x0 = cands[k]
-    if 0 < k < len(cands) - 1 and np.isfinite(cost[k - 1]) and np.isfinite(cost[k + 1]):
-        c0, c1, c2 = cost[k - 1], cost[k], cost[k + 1]
-        den = c0 - 2 * c1 + c2
-        if den > 0:
-            x0 += 0.5 * (c0 - c2) / den
-    return float(x0), float(cost[k])
-
-
 def slope_at(x: np.ndarray, profile: np.ndarray, x0: float, half_width: float) -> float:
     """Least-squares slope d(depth)/dx of the profile over ``x0 ± half_width`` (mm/mm)."""
     sel = (np.abs(x - x0) <= half_width) & np.isfinite(profile)
@@ -171,3 +133,94 @@ def central_extent(xs: np.ndarray, gap_mm: float, around: float = 0.0) -> tuple[
         if d < best_d:
             best, best_d = k, d
     return float(s[starts[best]]), float(s[ends[best]])
+
+
+def symmetry_costs(x: np.ndarray, rows: np.ndarray, centres: np.ndarray, window_mm: float, search_mm: float,
+                   step_mm: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """The mirror misfit of every row at every candidate symmetry point: ``(offsets, cost)``.
+
+    ``rows`` (n, len(x)): horizontal profiles of the depth map (mm, NaN: no skin) on the regular grid ``x``;
+    ``centres`` (n,): where each row's search is centred (mm). For a candidate ``x0`` the row's right half is
+    compared with its left half mirrored after removing a linear tilt (a turned symmetric profile is, to
+    first order, symmetric plus a tilt): ``cost[k, c]`` is the RMS residual (mm) of
+    ``d(x0+u) - d(x0-u) = 2·a·u`` for ``0 < u <= window_mm``, about ``x0 = centres[k] + offsets[c]``
+    (``offsets`` every ``step_mm`` within ``±search_mm``); ``inf`` where less than 80 % of the window's
+    distances have skin on both sides.
+    """
+    x = np.asarray(x, float)
+    rows = np.array(rows, dtype=float)
+    for r in rows:  # holes inside a row are bridged linearly; beyond its ends, no skin
+        good = np.isfinite(r)
+        if 2 <= good.sum() < len(r):
+            r[:] = np.interp(x, x[good], r[good], left=np.nan, right=np.nan)
+    g = float(x[1] - x[0])
+    u = np.arange(g, window_mm + 1e-9, g)
+    offsets = np.arange(-search_mm, search_mm + 1e-9, step_mm)
+    cand = np.asarray(centres, float)[:, None] + offsets[None, :]  # (n, c)
+
+    def sample(q):  # rows at positions q (n, c, u), linear on the regular grid; NaN outside
+        p = (q - x[0]) / g
+        i0 = np.floor(p).astype(int)
+        f = p - i0
+        inside = (i0 >= 0) & (i0 < len(x) - 1)
+        i0 = np.clip(i0, 0, len(x) - 2)
+        r = np.arange(rows.shape[0])[:, None, None]
+        v = (1 - f) * rows[r, i0] + f * rows[r, i0 + 1]
+        return np.where(inside, v, np.nan)
+
+    with np.errstate(invalid="ignore"):
+        diff = sample(cand[:, :, None] + u) - sample(cand[:, :, None] - u)
+    ok = np.isfinite(diff)
+    uu = np.where(ok, u, 0.0)
+    dd = np.where(ok, diff, 0.0)
+    n_ok = ok.sum(axis=2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        slope = (dd * uu).sum(axis=2) / (uu * uu).sum(axis=2)
+        res = np.where(ok, dd - slope[..., None] * uu, 0.0)
+        cost = np.sqrt((res ** 2).sum(axis=2) / n_ok)
+    cost = np.where((n_ok >= 0.8 * len(u)) & np.isfinite(cost), cost, np.inf)
+    return offsets, cost
+
+
+def smoothest_path(cost: np.ndarray, offsets: np.ndarray, centres: np.ndarray, penalty: float) -> np.ndarray:
+    """The line through the rows that minimizes the misfit plus ``penalty`` times its squared steps (mm).
+
+    ``cost`` (n, c) from :func:`symmetry_costs`. Dynamic programming (Viterbi) over the rows: each row's
+    candidate positions ``centres[k] + offsets``; a step of ``d`` mm between neighbouring rows costs
+    ``penalty · d²``. A row with no finite cost adds nothing, so the line runs on through it from the rows
+    around; it is NaN in the result. Returns each row's position (mm), refined by a parabola through the
+    chosen candidate's cost and its neighbours'.
+    """
+    n, c = cost.shape
+    pos = np.asarray(centres, float)[:, None] + offsets[None, :]
+    finite = np.isfinite(cost)
+    seen = finite.any(axis=1)
+    # relative to each row's best: how much worse a candidate fits, not the row's own roughness; a candidate
+    # the row cannot read is out of bounds unless the row reads none
+    best = np.min(np.where(finite, cost, np.inf), axis=1, keepdims=True)
+    with np.errstate(invalid="ignore"):
+        base = np.where(finite, cost - best, np.where(seen[:, None], 1e6, 0.0))
+    total = base[0].copy()
+    back = np.zeros((n, c), dtype=int)
+    for k in range(1, n):
+        step = pos[k][:, None] - pos[k - 1][None, :]  # (c here, c before)
+        t = total[None, :] + penalty * step ** 2
+        back[k] = np.argmin(t, axis=1)
+        total = base[k] + t[np.arange(c), back[k]]
+    path = np.zeros(n, dtype=int)
+    path[-1] = int(np.argmin(total))
+    for k in range(n - 1, 0, -1):
+        path[k - 1] = back[k, path[k]]
+    out = pos[np.arange(n), path].copy()
+    k = np.arange(n)
+    inner = (path > 0) & (path < c - 1)
+    c0 = np.where(inner, cost[k, np.clip(path - 1, 0, c - 1)], np.nan)
+    c1 = cost[k, path]
+    c2 = np.where(inner, cost[k, np.clip(path + 1, 0, c - 1)], np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        den = c0 - 2 * c1 + c2
+        shift = np.where(np.isfinite(den) & (den > 0), 0.5 * (c0 - c2) / den, 0.0)
+    step_mm = offsets[1] - offsets[0] if len(offsets) > 1 else 1.0
+    out += np.clip(shift, -0.5, 0.5) * step_mm
+    out[~seen | ~np.isfinite(c1)] = np.nan
+    return out

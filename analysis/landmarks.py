@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .backsurface import DepthMap, central_extent, symmetry_point
+from .backsurface import DepthMap, central_extent, smoothest_path, symmetry_costs
 from .config import IndicesConfig
 
 
@@ -54,45 +54,33 @@ def width_profile(P: np.ndarray, cfg: IndicesConfig, step_mm: float | None = Non
     return zs, w
 
 
-def robust_line(zs: np.ndarray, xs: np.ndarray, half: int = 5, tol_mm: float = 8.0) -> np.ndarray:
-    """``xs`` with outliers (farther than ``tol_mm`` from the running median) replaced by that median."""
-    out = xs.copy()
-    med = np.full(len(xs), np.nan)
-    for i in range(len(xs)):
-        w = xs[max(0, i - half):i + half + 1]
-        w = w[np.isfinite(w)]
-        if len(w):
-            med[i] = np.median(w)
-    bad = ~np.isfinite(xs) | (np.abs(xs - med) > tol_mm)
-    out[bad] = med[bad]
-    return out
-
-
 def midline_profile(dmap: DepthMap, cfg: IndicesConfig, step_mm: float = 4.0, centre: float = 0.0):
     """Heights, symmetry points x (mm) and the back's depth on them, every ``step_mm`` of the depth map.
 
-    Two passes: a wide window (``1.75 × symmetry_window_mm``, the back's whole
-    curvature) over the full search range gives a coarse line, made robust by a
-    running median; the symmetry window then refines each point within 12 mm of it.
+    The line of symmetry is found as one line, not row by row: each row's mirror misfit at every candidate
+    point (:func:`~analysis.backsurface.symmetry_costs`) and the line through the rows that fits best while
+    stepping least (:func:`~analysis.backsurface.smoothest_path`, ``cfg.symmetry_step_penalty``). A flat
+    lumbar back or a sparse reconstruction leaves a row's own minimum shallow, and row by row the line
+    jumped 10-20 mm there between same-day re-scans. Two passes: a wide window (``1.75 ×
+    symmetry_window_mm``, the back's whole curvature) over the full search range, then the symmetry window
+    within 12 mm of that line.
     """
-    from dataclasses import replace
-
     zs = np.arange(dmap.z[0], dmap.z[-1], step_mm)
-    wide = replace(cfg, symmetry_window_mm=1.75 * cfg.symmetry_window_mm)
-    narrow = replace(cfg, symmetry_search_mm=12.0)
-    rows = [dmap.row(z) for z in zs]
-    x1 = np.array([symmetry_point(dmap.x, r, centre, wide)[0] for r in rows])
-    x1 = robust_line(zs, x1)
-    xs, ds = np.full(len(zs), np.nan), np.full(len(zs), np.nan)
-    for k, r in enumerate(rows):
-        if not np.isfinite(x1[k]):
-            continue
-        x0, _ = symmetry_point(dmap.x, r, x1[k], narrow)
-        xs[k] = x0
-    xs = robust_line(zs, xs, tol_mm=4.0)
-    for k, r in enumerate(rows):
-        if np.isfinite(xs[k]):
-            ds[k] = np.interp(xs[k], dmap.x, r)
+    rows = np.array([dmap.row(z) for z in zs])
+    nan = np.full(len(zs), np.nan)
+    start = np.full(len(zs), float(centre))
+    off, cost = symmetry_costs(dmap.x, rows, start, 1.75 * cfg.symmetry_window_mm, cfg.symmetry_search_mm)
+    coarse = smoothest_path(cost, off, start, cfg.symmetry_step_penalty)
+    ok = np.isfinite(coarse)
+    if ok.sum() < 2:
+        return zs, nan, nan.copy()
+    # rows the wide window cannot read (the neck, narrower than it) are searched about the line's nearest end
+    around = np.interp(zs, zs[ok], coarse[ok])
+    off, cost = symmetry_costs(dmap.x, rows, around, cfg.symmetry_window_mm, 12.0)
+    xs = smoothest_path(cost, off, around, cfg.symmetry_step_penalty)
+    ds = nan.copy()
+    for k in np.nonzero(np.isfinite(xs))[0]:
+        ds[k] = np.interp(xs[k], dmap.x, rows[k])
     return zs, xs, ds
 
 
