@@ -78,6 +78,10 @@ def analyse_capture(scenario: Path, name: str, work: Path, rng: np.random.Genera
             shutil.rmtree(out)
         write_torso(out, result)
         recon = result["report"]
+    if recon["status"] == "failed":
+        # the clinic presents no indices from a failed reconstruction (its files stay for inspection): neither
+        # does this benchmark; counted under "failed"
+        raise ValueError("reconstruction failed: " + "; ".join(recon.get("problems") or []))
     torso = read_torso(out / "torso.ply")
     rep = analyse_torso(torso).report
     marked = []
