@@ -27,8 +27,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .backsurface import (DepthMap, back_points, central_extent, depth_map, prominence_difference, slope_at,
-                          symmetry_point)
+from .backsurface import DepthMap, back_points, central_extent, depth_map, prominence_difference, slope_at
 from .config import AnalysisConfig, IndicesConfig, RigidConfig
 from .frame import PatientFrame, detect_posterior, frame_from_posterior, symmetry_plane
 from .landmarks import broad_slope, detect_landmarks, find_dimples, midline_profile, sagittal_inclination

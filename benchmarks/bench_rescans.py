@@ -183,6 +183,9 @@ def main(argv=None):
     ap.add_argument("--write-mdc", action="store_true",
                     help="store the tuning set's MDC in analysis/scanner_mdc.json for this preset's rigs")
     args = ap.parse_args(argv)
+    # the commit the code was loaded from (a run takes an hour; HEAD may move meanwhile)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                            text=True).stdout.strip()
     out = Path(args.out) / args.preset
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -193,8 +196,6 @@ def main(argv=None):
     log(f"held-out set: seed {args.report_seed}, {args.report_bodies} bodies")
     report = run_set("report", args.report_seed, args.report_bodies, args.preset, out, True, log) \
         if args.report_bodies else []
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                            text=True).stdout.strip()
     clinic = clinic_mdc(mdc, args.preset)
     res = {"command": " ".join(["benchmarks/bench_rescans.py", *(argv if argv is not None else sys.argv[1:])]),
            "commit": commit, "machine": f"{platform.machine()}, {__import__('os').cpu_count()} cores",
