@@ -256,6 +256,8 @@ def main(argv=None):
     ap.add_argument("--json", help="write the summaries here")
     ap.add_argument("--write-mdc", action="store_true", help="write the tuning set's MDC to analysis/scanner_mdc.json")
     args = ap.parse_args(argv)
+    # the commit the code was loaded from (HEAD may move during the run)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     t0 = time.perf_counter()
     log = lambda msg: print(msg, flush=True)  # noqa: E731
     log(f"tuning bodies (seed {args.tune_seed}):")
@@ -263,7 +265,6 @@ def main(argv=None):
     mdc = mdc_from_index_pairs(repeat_pairs(tune))
     log(f"held-out bodies (seed {args.report_seed}):")
     report = run_set(args.report_seed, args.report_bodies, args.points, log)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     result = {"command": " ".join(["benchmarks/bench_bodies.py", *(argv if argv is not None else sys.argv[1:])]),
               "commit": commit, "machine": f"{platform.processor() or platform.machine()}, {platform.python_version()}",
               "seconds": time.perf_counter() - t0,

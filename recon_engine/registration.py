@@ -401,7 +401,10 @@ def chain_initial(surfaces: dict, order: list, reference: str, cfg: ICPatchConfi
     Arms are placed one by one along the neighbouring pairs that overlap most
     under their nominal placement (``initial``, default identity: where the
     calibration put them), each registered to an already placed neighbour: a
-    pair that barely overlaps is not needed to place every arm. Returns
+    pair that barely overlaps is not needed to place every arm. An arm that no
+    placed neighbour overlaps within ``cfg.initial_distance_mm`` is tried again
+    at twice and four times that start distance (an arm that swung 1 deg about a
+    pivot 2.5 m away has moved the skin by about 40 mm). Returns
     ``(transforms, pairwise results)``; arms no pair can reach are left out.
     """
     cfg = cfg or ICPatchConfig()
@@ -415,16 +418,28 @@ def chain_initial(surfaces: dict, order: list, reference: str, cfg: ICPatchConfi
                                            cfg.initial_distance_mm, cfg)
     T = {reference: Transform.identity()}
     results = []
+    pair_cfg = cfg
     while True:
         # the best-overlapping pair from a placed arm to an unplaced one (a maximum spanning tree)
         cand = [(n, m, f) for (m, f), n in overlap.items() if f in T and m not in T and n >= 7]
+        if not cand and len(T) < len(order) and pair_cfg.initial_distance_mm < cfg.initial_distance_mm * 4:
+            # no placed neighbour overlaps an unplaced arm within the acceptance distance: the arm moved more
+            # than it allows (an arm that swings 1 deg about a pivot 2.5 m away moves the skin by 40 mm).
+            # Widen the start distance for such arms, twice at most
+            pair_cfg = replace(pair_cfg, initial_distance_mm=2 * pair_cfg.initial_distance_mm)
+            for (m, f) in overlap:
+                if f in T and m not in T:
+                    rel = start[f].inverse().compose(start[m])
+                    overlap[(m, f)] = _count_pairs(surfaces[m].points, surfaces[m].normals, indices[f][0], rel,
+                                                   pair_cfg.initial_distance_mm, cfg)
+            continue
         if not cand:
             break
         n, arm, prev = max(cand)
         local = start[prev].inverse().compose(start[arm])  # the nominal placement, in prev's frame
         index, which = choose_patches(surfaces[arm].points, surfaces[arm].normals, indices[prev], local,
-                                      cfg.initial_distance_mm, cfg)
-        res = icpatch(surfaces[arm], surfaces[prev], local, cfg, index=index)
+                                      pair_cfg.initial_distance_mm, cfg)
+        res = icpatch(surfaces[arm], surfaces[prev], local, pair_cfg, index=index)
         T[arm] = T[prev].compose(res["transform"])
         results.append({"a": arm, "b": prev, "patches": which, **{k: v for k, v in res.items() if k != "transform"}})
         progress(f"ICPatch {arm} to {prev}: {res['average_normal_distance_mm']:.3f} mm, "
