@@ -97,6 +97,9 @@ def analyse_capture(scenario: Path, name: str, work: Path, rng: np.random.Genera
 
 def run_set(label: str, seed: int, n_bodies: int, preset_name: str, out: Path, later_visit: bool, log) -> list:
     rng = np.random.default_rng(seed)
+    # the clinician's clicks have their own stream: the bodies drawn must not depend on which scans the
+    # analysis asked to be marked (until 2026-12-03 one stream served both, so an analysis change redrew them)
+    clicks = np.random.default_rng([seed, 1])
     bodies = []
     for b in range(n_bodies):
         draw = draw_body(rng)
@@ -106,10 +109,14 @@ def run_set(label: str, seed: int, n_bodies: int, preset_name: str, out: Path, l
         if not (scenario / "truth" / "scenario.json").exists():
             simulate(scenario, cfg, force=True, progress=lambda m: None)
         render_s = time.perf_counter() - t0
+        # the body as rendered (a kept scenario may come from an earlier draw): its own record says
+        subject = json.loads((scenario / "truth" / "scenario.json").read_text())["config"]["subject"]
+        draw = {"subject": {k: subject.get(k, v) for k, v in draw["subject"].items()},
+                "rotation_deg": subject["rotation_deg"], "lateral_mm": subject["lateral_mm"]}
         rec = {"body": b, "draw": draw, "render_s": round(render_s, 1), "scans": {}}
         for name, _ in cfg.captures:
             try:
-                rec["scans"][name] = analyse_capture(scenario, name, scenario.parent / "torsos", rng)
+                rec["scans"][name] = analyse_capture(scenario, name, scenario.parent / "torsos", clicks)
             except ValueError as exc:  # a reconstruction or an analysis that declines: counted, not hidden
                 rec["scans"][name] = {"failed": str(exc)}
         bodies.append(rec)
