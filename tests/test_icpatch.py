@@ -5,33 +5,15 @@ import pytest
 
 from recon_engine.bundle import rodrigues
 from recon_engine.registration import ICPatchConfig, Transform, icpatch
-from recon_engine.surface import PointSurface, triangulate, vertex_normals
-
-
-def _torso_like(x0, x1, n=6000, noise=0.0, seed=0):
-    """A curved, bumpy piece of surface (mm), seen from +z far away."""
-    rng = np.random.default_rng(seed)
-    x = rng.uniform(x0, x1, n)
-    y = rng.uniform(-200, 200, n)
-    z = -x ** 2 / 600 - y ** 2 / 2000 + 8 * np.sin(x / 40) * np.cos(y / 55) + rng.normal(0, noise, n)
-    P = np.column_stack([x, y, z])
-    eye = np.array([0, 0, 3000.0])
-    R = np.eye(3)
-    R[2] = [0, 0, -1]
-    R[1] = [0, -1, 0]
-    F = triangulate(P, R, eye)
-    return PointSurface(P, vertex_normals(P, F, eye), F)
-
-
-def _moved(surface, T):
-    return PointSurface(T.apply(surface.points), T.rotate(surface.normals), surface.faces)
+from recon_engine.surface import PointSurface
+from tests.surface_pieces import moved, torso_like
 
 
 def test_it_recovers_a_known_similarity():
-    fixed = _torso_like(-200, 100, n=20000, seed=1)
-    part = _torso_like(-50, 200, n=8000, seed=2, noise=0.05)
+    fixed = torso_like(-200, 100, n=20000, seed=1)
+    part = torso_like(-50, 200, n=8000, seed=2, noise=0.05)
     truth = Transform(1.0005, rodrigues(np.radians([0.4, -0.3, 1.0])), np.array([4.0, -3.0, 2.0]))
-    moving = _moved(part, truth.inverse())  # what the other arm measured in its own frame
+    moving = moved(part, truth.inverse())  # what the other arm measured in its own frame
     res = icpatch(moving, fixed, cfg=ICPatchConfig(estimate_scale=True))
     T = res["transform"]
     err = T.apply(moving.points) - part.points
@@ -46,18 +28,18 @@ def test_it_recovers_a_known_similarity():
 
 
 def test_points_over_a_hole_are_not_paired():
-    fixed = _torso_like(-200, 100, n=20000, seed=3)
+    fixed = torso_like(-200, 100, n=20000, seed=3)
     hole = np.linalg.norm(fixed.points[:, :2] - [0, 0], axis=1) < 50
     keep = ~hole[fixed.faces].any(axis=1)
     fixed = PointSurface(fixed.points, fixed.normals, fixed.faces[keep])
-    part = _torso_like(-100, 100, n=8000, seed=4)
+    part = torso_like(-100, 100, n=8000, seed=4)
     res = icpatch(part, fixed, Transform(1.0, rodrigues(np.radians([0, 0, 0.3])), np.array([1.0, 0, 0])))
     err = res["transform"].apply(part.points) - part.points
     assert res["converged"] and np.sqrt(np.mean(np.sum(err ** 2, axis=1))) < 0.08
 
 
 def test_it_refuses_surfaces_that_do_not_overlap():
-    a = _torso_like(-200, -100, seed=5)
-    b = _torso_like(300, 400, seed=6)
+    a = torso_like(-200, -100, seed=5)
+    b = torso_like(300, 400, seed=6)
     with pytest.raises(ValueError, match="do not overlap"):
         icpatch(b, a)

@@ -5,16 +5,16 @@ import numpy as np
 
 from recon_engine.bundle import rodrigues
 from recon_engine.registration import ICPatchConfig, Transform, chain_initial
-from tests.test_icpatch import _moved, _torso_like
+from tests.surface_pieces import moved, torso_like
 
 
 def test_it_places_an_arm_displaced_beyond_the_start_distance():
-    fixed = _torso_like(-200, 100, n=12000, seed=11)
-    part = _torso_like(-50, 200, n=6000, seed=12, noise=0.05)
+    fixed = torso_like(-200, 100, n=12000, seed=11)
+    part = torso_like(-50, 200, n=6000, seed=12, noise=0.05)
     cfg = ICPatchConfig()
     truth = Transform(1.0, rodrigues(np.radians([0.0, 0.0, 0.9])), np.array([-12.0, 8.0, 45.0]))
     assert truth.t[2] > 1.5 * cfg.initial_distance_mm  # along the skin's normal: no pair within the start distance
-    moving = _moved(part, truth.inverse())  # where the arm's own calibration put what it saw
+    moving = moved(part, truth.inverse())  # where the arm's own calibration put what it saw
     T, results = chain_initial({"A": fixed, "C": moving}, ["A", "C"], "A", cfg)
     assert "C" in T and results[0]["a"] == "C"
     err = T["C"].apply(moving.points) - part.points
@@ -22,7 +22,7 @@ def test_it_places_an_arm_displaced_beyond_the_start_distance():
 
 
 def test_surfaces_that_never_overlap_are_still_left_unplaced():
-    a = _torso_like(-200, -100, seed=13)
-    b = _torso_like(300, 400, seed=14)
+    a = torso_like(-200, -100, seed=13)
+    b = torso_like(300, 400, seed=14)
     T, results = chain_initial({"A": a, "B": b}, ["A", "B"], "A", ICPatchConfig())
     assert "B" not in T and results == []
