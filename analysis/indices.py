@@ -345,6 +345,8 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
     apex, spine_apex = apex_of("lateral_deviation_mm"), apex_of("spine_lateral_deviation_mm")
     rot_apex, mid_apex = apex_of("surface_rotation_deg"), apex_of("midline_rotation_deg")
     lm_rig = {k: frame.to_rig(v) for k, v in lm.items()}
+    hump_sides = {"max": signed_max([s["hump_mm"] for s in sections]), **_sides(sections, "hump_mm")}
+    angle_sides = {"max": signed_max([s["hump_angle_deg"] for s in sections]), **_sides(sections, "hump_angle_deg")}
     report = {
         "format": FORMAT,
         "source": torso.source,
@@ -352,11 +354,11 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         "surface_rotation_deg": _summary(sections, "surface_rotation_deg"),
         "spine_lateral_deviation_mm": _summary(sections, "spine_lateral_deviation_mm"),
         "midline_rotation_deg": _summary(sections, "midline_rotation_deg"),
-        "hump_mm": signed_max([s["hump_mm"] for s in sections]),
-        "hump_angle_deg": signed_max([s["hump_angle_deg"] for s in sections]),
+        "hump_mm": hump_sides["max"],
+        "hump_angle_deg": angle_sides["max"],
         # the hump on each side: an S curve's two humps can be nearly equal, and its signed maximum jumps sides
-        "hump": {"max": signed_max([s["hump_mm"] for s in sections]), **_sides(sections, "hump_mm")},
-        "hump_angle": {"max": signed_max([s["hump_angle_deg"] for s in sections]), **_sides(sections, "hump_angle_deg")},
+        "hump": hump_sides,
+        "hump_angle": angle_sides,
         "trunk_imbalance_mm": float(-(vp[0] - sp[0])),
         "trunk_inclination_mm": float(vp[1] - sp[1]),
         "trunk_length_mm": float(np.linalg.norm(vp - sp)),

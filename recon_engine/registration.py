@@ -410,12 +410,13 @@ def chain_initial(surfaces: dict, order: list, reference: str, cfg: ICPatchConfi
     cfg = cfg or ICPatchConfig()
     start = {a: (initial or {}).get(a, Transform.identity()) for a in order}
     indices = indices or patch_indices({a: surfaces[a] for a in order}, cfg)  # (see patch_indices)
-    overlap = {}
-    for a, b in neighbour_pairs(order):
-        for m, f in ((a, b), (b, a)):
-            rel = start[f].inverse().compose(start[m])
-            overlap[(m, f)] = _count_pairs(surfaces[m].points, surfaces[m].normals, indices[f][0], rel,
-                                           cfg.initial_distance_mm, cfg)
+
+    def pairs_within(m, f, distance):  # m's points near f's patches under their nominal placement
+        rel = start[f].inverse().compose(start[m])
+        return _count_pairs(surfaces[m].points, surfaces[m].normals, indices[f][0], rel, distance, cfg)
+
+    overlap = {(m, f): pairs_within(m, f, cfg.initial_distance_mm)
+               for a, b in neighbour_pairs(order) for m, f in ((a, b), (b, a))}
     T = {reference: Transform.identity()}
     results = []
     pair_cfg = cfg
@@ -427,11 +428,8 @@ def chain_initial(surfaces: dict, order: list, reference: str, cfg: ICPatchConfi
             # than it allows (an arm that swings 1 deg about a pivot 2.5 m away moves the skin by 40 mm).
             # Widen the start distance for such arms, twice at most
             pair_cfg = replace(pair_cfg, initial_distance_mm=2 * pair_cfg.initial_distance_mm)
-            for (m, f) in overlap:
-                if f in T and m not in T:
-                    rel = start[f].inverse().compose(start[m])
-                    overlap[(m, f)] = _count_pairs(surfaces[m].points, surfaces[m].normals, indices[f][0], rel,
-                                                   pair_cfg.initial_distance_mm, cfg)
+            overlap.update({(m, f): pairs_within(m, f, pair_cfg.initial_distance_mm)
+                            for (m, f) in overlap if f in T and m not in T})
             continue
         if not cand:
             break
