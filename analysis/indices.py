@@ -262,9 +262,14 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
     mz, mx = mz[okm], mx[okm]
     w = np.exp(-0.5 * ((mz[:, None] - mz[None, :]) / ic.line_smooth_mm) ** 2)
     mx_s = (w @ mx) / w.sum(axis=1)
+    # the lateral deviation's reference: the straight line joining the symmetry line's own points at the SP and
+    # VP heights. The landmarks' x would carry their own scatter into every section (a clicked SP 2 mm off, an
+    # automatic one a few mm the other way); on the tuning bodies (seed 100) this cut the lateral deviation
+    # maximum's re-scan change from 1.90 to 1.32 mm (true surfaces) and its error from 1.60 to 1.39 mm mean abs
+    x_ref = (float(np.interp(sp[2], mz, mx_s)), float(np.interp(vp[2], mz, mx_s)))
     for s in np.arange(ic.end_margin, 1 - ic.end_margin + 1e-9, ic.section_step):
         z = sp[2] + s * length
-        x_line = sp[0] + s * (vp[0] - sp[0])
+        x_line = x_ref[0] + s * (x_ref[1] - x_ref[0])
         row = dmap.row(z)
         x0 = float(np.interp(z, mz, mx_s))
         misfit = float(np.interp(z, mz, mx) - x0)
