@@ -796,7 +796,7 @@ def comparison_index_rows(comp, mdc) -> list[dict]:
         rows.append({"label": ix.label, "unit": ix.unit, "meaning": ix.meaning, "growth": ix.growth,
                      "earlier": labels.size_words(key, c["earlier"]), "later": labels.size_words(key, c["later"]),
                      "change": labels.change_words(key, c["earlier"], c["later"]), "mdc": c["mdc"],
-                     "exceeds_mdc": c["exceeds_mdc"]})
+                     "exceeds_mdc": c["exceeds_mdc"], "no_verdict": c.get("no_verdict")})
     return rows
 
 
