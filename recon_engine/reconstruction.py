@@ -271,8 +271,15 @@ class TorsoConfig:
     arm: ReconstructionConfig = field(default_factory=ReconstructionConfig)
     icpatch: ICPatchConfig = field(default_factory=ICPatchConfig)
     fuse_cell_fraction: float = 0.6  # fusion cell: this fraction of the median point spacing
-    poisson_depth: int = 9
+    # octree depth of the display mesh: its cells are the torso's extent (x1.1) / 2**depth. Paper scale, seed 33:
+    # depth 9 gives 2 mm cells in 4.2-5.4 s, depth 8 4 mm cells in 1.6 s; at 800 x 1000 px (about 1 mm per
+    # pixel) the pictures of the two do not differ (docs/benchmarks.md, the whole visit)
+    poisson_depth: int = 8
     mesh_trim_spacings: float = 3.0  # mesh vertices farther than this many point spacings from the data are cut
+    # ... but never closer than this many mesh cells: a vertex of a cell the data cross lies up to about a cell
+    # from them, and a closer cut strews pinholes over the skin (paper scale, depth 9, 1.28 mm: 15 % of the
+    # vertices cut, most of them inside the measured skin)
+    mesh_trim_cells: float = 1.0
     # arms reconstructed at once, each in its own process (their matching shares the cores); 0: one per core
     arm_workers: int = 0
 
@@ -294,8 +301,20 @@ def fuse_points(points: np.ndarray, normals: np.ndarray, sigma: np.ndarray, cell
     return P, Nn, 1.0 / np.sqrt(W), count
 
 
-def poisson_mesh(points: np.ndarray, normals: np.ndarray, depth: int, trim_mm: float):
-    """A watertight display mesh (Open3D's screened Poisson), trimmed to the data. (vertices, faces)."""
+def poisson_cell_mm(points: np.ndarray, depth: int, scale: float = 1.1) -> float:
+    """Edge (mm) of the finest octree cell of Open3D's Poisson reconstruction: the points' largest extent,
+    enlarged by ``scale`` (Open3D's default 1.1), split ``2**depth`` times."""
+    extent = float(np.max(np.ptp(np.asarray(points, dtype=float), axis=0))) if len(points) else 0.0
+    return scale * extent / 2 ** depth
+
+
+def poisson_mesh(points: np.ndarray, normals: np.ndarray, depth: int, trim_mm: float, trim_cells: float = 0.0):
+    """A watertight display mesh (Open3D's screened Poisson), trimmed to the data. (vertices, faces).
+
+    Vertices farther than ``max(trim_mm, trim_cells * cell)`` (mm) from every
+    point are cut, with ``cell`` the octree's finest cell (:func:`poisson_cell_mm`):
+    the mesh bridges gaps narrower than about twice that and leaves wider ones open.
+    """
     import open3d as o3d  # here, not at the top: the arm processes never need its 90 MB
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
@@ -306,7 +325,8 @@ def poisson_mesh(points: np.ndarray, normals: np.ndarray, depth: int, trim_mm: f
 
     far, _ = cKDTree(points).query(V, k=1)
     density = np.asarray(density)
-    mesh.remove_vertices_by_mask((far > trim_mm) | (density < np.quantile(density, 0.01)))
+    limit = max(trim_mm, trim_cells * poisson_cell_mm(points, depth))
+    mesh.remove_vertices_by_mask((far > limit) | (density < np.quantile(density, 0.01)))
     return np.asarray(mesh.vertices), np.asarray(mesh.triangles)
 
 
@@ -515,7 +535,7 @@ def register_arms(surfaces: dict, arm_reports: dict, failed: dict, rig: Rig, cal
     P, N, S, count = fuse_points(pts, nrm, sig, cfg.fuse_cell_fraction * spacing)
     t3 = time.perf_counter()
     progress(f"Poisson mesh of {len(P)} fused points")
-    mesh = poisson_mesh(P, N, cfg.poisson_depth, cfg.mesh_trim_spacings * spacing)
+    mesh = poisson_mesh(P, N, cfg.poisson_depth, cfg.mesh_trim_spacings * spacing, cfg.mesh_trim_cells)
     t4 = time.perf_counter()
     report = {
         "format": "torso-reconstruction/1",
