@@ -88,6 +88,28 @@ def _figure_change(earlier: dict, later: dict, fa: dict, fb: dict, key: str):
     return sign * sa[side], sign * sb[side]
 
 
+def _side_changes(earlier: dict, later: dict, key: str, mdc) -> list | None:
+    """Each side's change of a figure compared side by side (``X.max``, see :func:`_figure_change`), or None.
+
+    ``[{"side", "earlier", "later", "change", "exceeds_mdc"}]`` (values signed by the side: + the patient's
+    right), the side larger on the later scan first, sides measured on neither scan left out. An S curve has
+    a curve on each side: a page that showed only the side that changed most would show the smaller curve's
+    figures under "largest" while the visit page shows the larger one."""
+    sa, sb = _side_sizes(earlier, key), _side_sizes(later, key)
+    if sa is None or sb is None:
+        return None
+    out = []
+    for side in sorted(("right", "left"), key=lambda s: (-sb[s], s != "right")):
+        if sa[side] == 0.0 and sb[side] == 0.0:
+            continue
+        sign = 1.0 if side == "right" else -1.0
+        change = sign * (sb[side] - sa[side])
+        # (+ 0.0: a side without a value reads 0.0, not -0.0)
+        out.append({"side": side, "earlier": sign * sa[side] + 0.0, "later": sign * sb[side] + 0.0, "change": change,
+                    "exceeds_mdc": exceeds_mdc(change, mdc)})
+    return out
+
+
 # figures that are the trunk landmarks' own offsets (mm): VP against SP across, front to back and along
 LANDMARK_OFFSETS = ("trunk_imbalance_mm", "trunk_inclination_mm", "trunk_length_mm")
 
@@ -256,7 +278,8 @@ def index_changes(earlier: dict, later: dict, mdc: dict | None = None, figures=I
     """Change of every index between two ``torso-indices/1`` reports, flagged against its MDC.
 
     Returns ``{figure: {"earlier", "later", "change", "mdc", "exceeds_mdc"}}`` (and ``no_verdict``, the reason,
-    where a landmark offset is not judged: :func:`placed_differently`). ``sides_agree=False``
+    where a landmark offset is not judged: :func:`placed_differently`; and ``sides``, each side's own change,
+    for a figure compared side by side: :func:`_side_changes`). ``sides_agree=False``
     (the comparison's ``facing.consistent``): the two scans disagree on the patient's sides, and only the
     figures that do not depend on them are compared. A signed maximum (``X.max``) is compared side by side:
     ``earlier`` and ``later`` are then the largest values on the side that changed most (signed by the side),
@@ -277,6 +300,9 @@ def index_changes(earlier: dict, later: dict, mdc: dict | None = None, figures=I
             ch = pair[1] - pair[0]
             out[k] = {"earlier": pair[0], "later": pair[1], "change": ch, "mdc": m,
                       "exceeds_mdc": exceeds_mdc(ch, m)}
+            both = _side_changes(earlier, later, k, m)
+            if both is not None:
+                out[k]["sides"] = both
             if mixed and k in LANDMARK_OFFSETS:
                 names = " and ".join(n.replace("_", " ") for n in mixed)
                 out[k].update(exceeds_mdc=None, no_verdict=f"no verdict: the {names} was marked on one scan and "

@@ -195,6 +195,22 @@ def change_words(key: str, earlier, later) -> str:
     return f"{d:+.1f}{'' if u == '°' else ' '}{u}"
 
 
+def change_texts(key: str, c: dict) -> dict:
+    """A change of :func:`analysis.repeatability.index_changes` in words: ``{"earlier", "later", "from_to",
+    "change"}``. A figure compared side by side (an S curve has a curve on each side) names both sides, the
+    one larger now first, so "largest" reads the same number here as on the visit page."""
+    parts = c.get("sides") or []
+    if len(parts) < 2:
+        return {"earlier": size_words(key, c["earlier"]), "later": size_words(key, c["later"]),
+                "from_to": f"{size_words(key, c['earlier'])} → {size_words(key, c['later'])}",
+                "change": change_words(key, c["earlier"], c["later"])}
+    side = {"right": "patient's right", "left": "patient's left"}
+    return {"earlier": "; ".join(size_words(key, p["earlier"]) for p in parts),
+            "later": "; ".join(size_words(key, p["later"]) for p in parts),
+            "from_to": "; ".join(f"{size_words(key, p['earlier'])} → {size_words(key, p['later'])}" for p in parts),
+            "change": "; ".join(f"{side[p['side']]}: {change_words(key, p['earlier'], p['later'])}" for p in parts)}
+
+
 def _trunk_height(sections) -> float | None:
     """Height of C7 above the sacral point from two sections (z = z_SP + level * height)."""
     if not sections or len(sections) < 2:

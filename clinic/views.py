@@ -313,10 +313,11 @@ def verdict_of(clinic, earlier, later, title, mdc=None, noise=None, sides_agree=
         if c is None:
             continue
         ix = labels.index(key)
+        words = labels.change_texts(key, c)
         item = {"label": ix.label, "meaning": ix.meaning, "unit": ix.unit,
-                "change": labels.change_words(key, c["earlier"], c["later"]),
+                "change": words["change"],
                 "size": abs(c["change"]),
-                "from_to": f"{labels.size_words(key, c['earlier'])} → {labels.size_words(key, c['later'])}",
+                "from_to": words["from_to"],
                 "mdc": None if c["mdc"] is None else f"± {c['mdc']:.1f}{'' if ix.unit == '°' else ' '}{ix.unit}",
                 "where": "; ".join(s["words"] for s in labels.sides(later.indices, key))}
         if ix.growth:
@@ -793,9 +794,10 @@ def comparison_index_rows(comp, mdc) -> list[dict]:
         if c is None:
             continue
         ix = labels.index(key)
+        words = labels.change_texts(key, c)
         rows.append({"label": ix.label, "unit": ix.unit, "meaning": ix.meaning, "growth": ix.growth,
-                     "earlier": labels.size_words(key, c["earlier"]), "later": labels.size_words(key, c["later"]),
-                     "change": labels.change_words(key, c["earlier"], c["later"]), "mdc": c["mdc"],
+                     "earlier": words["earlier"], "later": words["later"],
+                     "change": words["change"], "mdc": c["mdc"],
                      "exceeds_mdc": c["exceeds_mdc"], "no_verdict": c.get("no_verdict")})
     return rows
 

@@ -202,8 +202,8 @@ class Command(BaseCommand):
                             "within the scanner's noise" if c["exceeds_mdc"] is False else "no verdict yet")
                     unit = labels.unit(k)
                     noise = "" if c["mdc"] is None else f", noise ±{c['mdc']:.1f}{'' if unit == '°' else ' '}{unit}"
-                    self.say(f"    {labels.label(k)}: {labels.size_words(k, c['earlier'])} -> "
-                             f"{labels.size_words(k, c['later'])} ({labels.change_words(k, c['earlier'], c['later'])}"
+                    words = labels.change_texts(k, c)
+                    self.say(f"    {labels.label(k)}: {words['from_to'].replace('→', '->')} ({words['change']}"
                              f"{noise}): {flag}")
         n = Reconstruction.objects.filter(session__visit__patient_id=patient["id"]).count()
         self.say(f"\n{n} torsos reconstructed in {time.perf_counter() - t0:.0f} s in all.")
