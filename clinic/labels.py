@@ -190,7 +190,9 @@ def change_words(key: str, earlier, later) -> str:
         if earlier * later < 0:
             return "changed side"
         d = abs(later) - abs(earlier)
-        return f"{_fmt(abs(d), u)} {'larger' if d > 0 else 'smaller' if d < 0 else 'unchanged'}"
+        if round(abs(d), 1) == 0:  # "0.0° larger" reads as a change
+            return "unchanged"
+        return f"{_fmt(abs(d), u)} {'larger' if d > 0 else 'smaller'}"
     d = later - earlier
     return f"{d:+.1f}{'' if u == '°' else ' '}{u}"
 

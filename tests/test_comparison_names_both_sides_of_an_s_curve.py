@@ -49,3 +49,10 @@ def test_the_comparison_page_names_both_curves(client, charlie, patient_with_two
     assert f"<td>10.4° {RIGHT}; 7.2° {LEFT}</td><td>10.5° {RIGHT}; 7.6° {LEFT}</td>" in html
     # the verdict: each side's change
     assert "Trunk rotation, largest (patient&#x27;s right: 0.1° larger; patient&#x27;s left: 0.4° larger" in html
+
+
+def test_a_change_that_rounds_to_nothing_reads_unchanged():
+    from clinic import labels
+
+    assert labels.change_words("surface_rotation_deg.max", 10.44, 10.46) == "unchanged"
+    assert labels.change_words("surface_rotation_deg.max", 10.4, 10.6) == "0.2° larger"
