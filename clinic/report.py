@@ -596,10 +596,10 @@ def _verdict(sheets: Sheets, h: dict):
             extra = f"  (▲ beyond the scanner's noise of {c['mdc']})" if with_mdc else ""
             sheets.para(f"{c['label']}: {c['change']}{extra}", 8.8, bold=True, indent=8, after=0,
                         color=FLAG if with_mdc else INK)
-            was, _, now = c["from_to"].partition(" → ")
-            sheets.para((f"was {was}, now {now}" if now else was)
-                        + (f"; largest now: {c['where']}" if c.get("where") else ""), 8, color=MUTED,
-                        indent=16, after=2)
+            sheets.para(f"was {c['was']}, now {c['now']}"
+                        + (f"; largest now: {c['where']}" if c.get("where") else "")
+                        + (f". {c['reason'][0].upper()}{c['reason'][1:]}." if c.get("reason") else ""), 8,
+                        color=MUTED, indent=16, after=2)
 
     if h["beyond"]:
         sheets.para("▲ Changed beyond the scanner's noise", 9.5, bold=True, color=FLAG, after=1)
@@ -610,6 +610,9 @@ def _verdict(sheets: Sheets, h: dict):
         sheets.para("Changes without a noise estimate yet" if noise["ready"]
                     else "Changes (sizes only, no noise verdict)", 9.5, bold=True, after=1)
         items(h["unjudged"], False)
+    if h["no_verdict"]:
+        sheets.para("No verdict: a landmark was placed two ways", 9.5, bold=True, after=1)
+        items(h["no_verdict"], False)
     if h["within"]:
         sheets.para("Within the scanner's noise: " + "; ".join(
             f"{c['label']} ({c['change']}, noise {c['mdc']})" for c in h["within"]) + ".", 8.5, after=2)

@@ -290,7 +290,8 @@ def _flat_keys_of(bases) -> list:
 
 def verdict_of(clinic, earlier, later, title, mdc=None, noise=None, sides_agree=None, growth=None) -> dict:
     """The headline of two scans: what changed beyond the scanner's noise (by how much, where), what stayed
-    within it, what cannot be judged yet and why, what is not measurable, and growth apart."""
+    within it, what cannot be judged yet and why (``no_verdict``: a landmark placed two ways), what is not
+    measurable, and growth apart."""
     from analysis.repeatability import index_changes
 
     mdc = cached_mdc(clinic) if mdc is None else mdc
@@ -305,7 +306,7 @@ def verdict_of(clinic, earlier, later, title, mdc=None, noise=None, sides_agree=
            "earlier_date": earlier.session.visit.date, "later_date": later.session.visit.date,
            "span": span_words(earlier.session.visit.date, later.session.visit.date),
            "repeat": earlier.session.visit_id == later.session.visit_id, "noise": noise,
-           "beyond": [], "within": [], "unjudged": [], "growth": [], "sides_agree": sides_agree,
+           "beyond": [], "within": [], "unjudged": [], "no_verdict": [], "growth": [], "sides_agree": sides_agree,
            "not_measurable": [x for x in (not_measurable_of(earlier, f"the scan of {earlier.session.visit.date}"),
                                           not_measurable_of(later, f"the scan of {later.session.visit.date}")) if x]}
     for key in labels.HEADLINE_KEYS + labels.GROWTH_KEYS:
@@ -317,11 +318,13 @@ def verdict_of(clinic, earlier, later, title, mdc=None, noise=None, sides_agree=
         item = {"label": ix.label, "meaning": ix.meaning, "unit": ix.unit,
                 "change": words["change"],
                 "size": abs(c["change"]),
-                "from_to": words["from_to"],
+                "from_to": words["from_to"], "was": words["earlier"], "now": words["later"],
                 "mdc": None if c["mdc"] is None else f"± {c['mdc']:.1f}{'' if ix.unit == '°' else ' '}{ix.unit}",
                 "where": "; ".join(s["words"] for s in labels.sides(later.indices, key))}
         if ix.growth:
             out["growth"].append(item)
+        elif c.get("no_verdict"):
+            out["no_verdict"].append({**item, "reason": c["no_verdict"].removeprefix("no verdict: ")})
         elif c["exceeds_mdc"] is True:
             out["beyond"].append(item)
         elif c["exceeds_mdc"] is False:
