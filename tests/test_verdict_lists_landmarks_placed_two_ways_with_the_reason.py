@@ -4,7 +4,7 @@ estimate yet", which is not why they have no verdict)."""
 
 import pytest
 
-from tests.test_report_pdf import _get_pdf, reported_patient  # noqa: F401 (fixture)
+from tests.test_report_pdf import pdf_text, reported_patient  # noqa: F401 (fixture)
 
 HEADING = "No verdict: a landmark was placed two ways"
 REASON = "the sacral point was marked on one scan and found automatically on the other; mark it on both"
@@ -38,5 +38,7 @@ def test_the_headline_lists_them_apart_with_the_reason(client, charlie, reported
     r = client.get(f"/patients/{patient.pk}/compare/?earlier={visits[0].pk}&later={visits[1].pk}")
     html = r.content.decode().replace("&#x27;", "'")
     assert HEADING in html and REASON[0].upper() + REASON[1:] in html
-    text = _get_pdf(client, f"/comparisons/{comp.pk}/report.pdf")
+    r = client.get(f"/comparisons/{comp.pk}/report.pdf")
+    assert r.status_code == 200
+    text = pdf_text(r.content)
     assert HEADING in text and "mark it on both" in text
