@@ -70,44 +70,41 @@ def _side_sizes(report: dict, key: str):
     return sizes
 
 
-def _figure_change(earlier: dict, later: dict, fa: dict, fb: dict, key: str):
-    """``(earlier, later)`` values of one figure for its change, or None when either scan lacks it.
+def _side_changes(earlier: dict, later: dict, key: str) -> list | None:
+    """Each side's change of a figure that reports each side's largest value (``X.max``), or None.
 
-    A signed maximum (``X.max``: + the patient's right) can jump sides between two scans of the same back
-    when its two sides are nearly equal (an S curve): +8.0 deg on one scan, -7.9 deg on the re-scan, a
-    "change" of 15.9 deg that is no change. Such a figure is compared side by side instead: each side's
-    largest value against the same side's, and the side that changed most is reported (signed by its side).
-    """
-    if key not in fa or key not in fb:
-        return None
-    sa, sb = _side_sizes(earlier, key), _side_sizes(later, key)
-    if sa is None or sb is None:
-        return fa[key], fb[key]
-    side = max(("right", "left"), key=lambda s: (abs(sb[s] - sa[s]), s == "right"))
-    sign = 1.0 if side == "right" else -1.0
-    return sign * sa[side], sign * sb[side]
-
-
-def _side_changes(earlier: dict, later: dict, key: str, mdc) -> list | None:
-    """Each side's change of a figure compared side by side (``X.max``, see :func:`_figure_change`), or None.
-
-    ``[{"side", "earlier", "later", "change", "exceeds_mdc"}]`` (values signed by the side: + the patient's
-    right), the side larger on the later scan first, sides measured on neither scan left out. An S curve has
-    a curve on each side: a page that showed only the side that changed most would show the smaller curve's
-    figures under "largest" while the visit page shows the larger one."""
+    ``[{"side", "earlier", "later", "change"}]`` (values signed by the side: + the patient's right; a side
+    without a value reads 0.0), the side larger on the later scan first. An S curve has a curve on each side:
+    a page that showed only the side that changed most would show the smaller curve's figures under
+    "largest" while the visit page shows the larger one."""
     sa, sb = _side_sizes(earlier, key), _side_sizes(later, key)
     if sa is None or sb is None:
         return None
     out = []
     for side in sorted(("right", "left"), key=lambda s: (-sb[s], s != "right")):
-        if sa[side] == 0.0 and sb[side] == 0.0:
-            continue
         sign = 1.0 if side == "right" else -1.0
-        change = sign * (sb[side] - sa[side])
-        # (+ 0.0: a side without a value reads 0.0, not -0.0)
-        out.append({"side": side, "earlier": sign * sa[side] + 0.0, "later": sign * sb[side] + 0.0, "change": change,
-                    "exceeds_mdc": exceeds_mdc(change, mdc)})
+        # (+ 0.0: no -0.0 for a side without a value)
+        out.append({"side": side, "earlier": sign * sa[side] + 0.0, "later": sign * sb[side] + 0.0,
+                    "change": sign * (sb[side] - sa[side]) + 0.0})
     return out
+
+
+def _figure_change(earlier: dict, later: dict, fa: dict, fb: dict, key: str):
+    """``(earlier, later, sides)`` of one figure for its change, or None when either scan lacks it.
+
+    A signed maximum (``X.max``: + the patient's right) can jump sides between two scans of the same back
+    when its two sides are nearly equal (an S curve): +8.0 deg on one scan, -7.9 deg on the re-scan, a
+    "change" of 15.9 deg that is no change. Such a figure is compared side by side instead: each side's
+    largest value against the same side's, and the side that changed most gives ``earlier`` and ``later``
+    (signed by its side); ``sides`` is :func:`_side_changes` (None for a figure without sides).
+    """
+    if key not in fa or key not in fb:
+        return None
+    sides = _side_changes(earlier, later, key)
+    if sides is None:
+        return fa[key], fb[key], None
+    most = max(sides, key=lambda s: (abs(s["change"]), s["side"] == "right"))
+    return most["earlier"], most["later"], sides
 
 
 # figures that are the trunk landmarks' own offsets (mm): VP against SP across, front to back and along
@@ -300,9 +297,10 @@ def index_changes(earlier: dict, later: dict, mdc: dict | None = None, figures=I
             ch = pair[1] - pair[0]
             out[k] = {"earlier": pair[0], "later": pair[1], "change": ch, "mdc": m,
                       "exceeds_mdc": exceeds_mdc(ch, m)}
-            both = _side_changes(earlier, later, k, m)
-            if both is not None:
-                out[k]["sides"] = both
+            if pair[2] is not None:
+                # sides measured on neither scan are left out
+                out[k]["sides"] = [{**side, "exceeds_mdc": exceeds_mdc(side["change"], m)} for side in pair[2]
+                                   if side["earlier"] or side["later"]]
             if mixed and k in LANDMARK_OFFSETS:
                 names = " and ".join(n.replace("_", " ") for n in mixed)
                 out[k].update(exceeds_mdc=None, no_verdict=f"no verdict: the {names} was marked on one scan and "

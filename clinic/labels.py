@@ -202,15 +202,16 @@ def change_texts(key: str, c: dict) -> dict:
     "change"}``. A figure compared side by side (an S curve has a curve on each side) names both sides, the
     one larger now first, so "largest" reads the same number here as on the visit page."""
     parts = c.get("sides") or []
-    if len(parts) < 2:
-        return {"earlier": size_words(key, c["earlier"]), "later": size_words(key, c["later"]),
-                "from_to": f"{size_words(key, c['earlier'])} → {size_words(key, c['later'])}",
-                "change": change_words(key, c["earlier"], c["later"])}
-    side = {"right": "patient's right", "left": "patient's left"}
-    return {"earlier": "; ".join(size_words(key, p["earlier"]) for p in parts),
-            "later": "; ".join(size_words(key, p["later"]) for p in parts),
-            "from_to": "; ".join(f"{size_words(key, p['earlier'])} → {size_words(key, p['later'])}" for p in parts),
-            "change": "; ".join(f"{side[p['side']]}: {change_words(key, p['earlier'], p['later'])}" for p in parts)}
+    named = len(parts) > 1
+    if not named:
+        parts = [c]
+    was = [size_words(key, p["earlier"]) for p in parts]
+    now = [size_words(key, p["later"]) for p in parts]
+    change = [change_words(key, p["earlier"], p["later"]) for p in parts]
+    if named:
+        change = [f"patient's {p['side']}: {words}" for p, words in zip(parts, change)]
+    return {"earlier": "; ".join(was), "later": "; ".join(now),
+            "from_to": "; ".join(f"{e} → {l}" for e, l in zip(was, now)), "change": "; ".join(change)}
 
 
 def _trunk_height(sections) -> float | None:

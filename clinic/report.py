@@ -28,6 +28,7 @@ from pathlib import Path
 from django.core.cache import cache
 from django.core.files.storage import default_storage
 from django.utils import timezone
+from django.utils.text import capfirst
 
 from . import labels
 # the pages' own helpers: the report calls them (rather than re-deriving a verdict) so that paper and screen never
@@ -598,7 +599,7 @@ def _verdict(sheets: Sheets, h: dict):
                         color=FLAG if with_mdc else INK)
             sheets.para(f"was {c['was']}, now {c['now']}"
                         + (f"; largest now: {c['where']}" if c.get("where") else "")
-                        + (f". {c['reason'][0].upper()}{c['reason'][1:]}." if c.get("reason") else ""), 8,
+                        + (f". {capfirst(c['reason'])}." if c.get("reason") else ""), 8,
                         color=MUTED, indent=16, after=2)
 
     if h["beyond"]:

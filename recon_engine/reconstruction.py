@@ -272,8 +272,8 @@ class TorsoConfig:
     icpatch: ICPatchConfig = field(default_factory=ICPatchConfig)
     fuse_cell_fraction: float = 0.6  # fusion cell: this fraction of the median point spacing
     # octree depth of the display mesh: its cells are the torso's extent (x1.1) / 2**depth. Paper scale, seed 33:
-    # depth 9 gives 2 mm cells in 4.2-5.4 s, depth 8 4 mm cells in 1.6 s; at 800 x 1000 px (about 1 mm per
-    # pixel) the pictures of the two do not differ (docs/benchmarks.md, the whole visit)
+    # depth 9 gives 2 mm cells in 4.2-5.6 s, depth 8 4 mm cells in 1.6 s; at 800 x 1000 px (about 1 mm per
+    # pixel) the pictures of the two could not be told apart by eye (docs/benchmarks.md, the whole visit)
     poisson_depth: int = 8
     mesh_trim_spacings: float = 3.0  # mesh vertices farther than this many point spacings from the data are cut
     # ... but never closer than this many mesh cells: a vertex of a cell the data cross lies up to about a cell

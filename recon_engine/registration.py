@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 
 from .bundle import rodrigues
 from .parallel import cores
-from .surface import PointSurface
+from .surface import PointSurface, subset
 
 
 @dataclass(frozen=True)
@@ -444,8 +444,9 @@ def chain_initial(surfaces: dict, order: list, reference: str, cfg: ICPatchConfi
                                       pair_cfg.initial_distance_mm, cfg)
         moving = surfaces[arm]
         if cfg.chain_points is not None and len(moving.points) > cfg.chain_points:
-            pick = _subsample(len(moving.points), cfg.chain_points)
-            moving = PointSurface(moving.points[pick], moving.normals[pick], np.zeros((0, 3), int), {})
+            keep = np.zeros(len(moving.points), bool)
+            keep[_subsample(len(moving.points), cfg.chain_points)] = True
+            moving = subset(moving, keep)
         res = icpatch(moving, surfaces[prev], local, pair_cfg, index=index)
         T[arm] = T[prev].compose(res["transform"])
         results.append({"a": arm, "b": prev, "patches": which, **{k: v for k, v in res.items() if k != "transform"}})
