@@ -77,6 +77,20 @@ def _summary(sections, key):
     return {"rms": rms(vals), "max": signed_max(vals), **_sides(sections, key)}
 
 
+def _cobb_sides(cobb: dict | None, z_sp: float, z_vp: float) -> dict:
+    """``{"max", "right", "left"}`` of the Cobb estimates (:func:`analysis.profiles.cobb_estimate`) in the
+    shape of :func:`_summary`: the major curve signed (+ convex right), each side's largest with its level."""
+    if not cobb:
+        return {"max": None, "right": None, "left": None}
+    major = cobb["major"]
+    out = {"max": (major["value_deg"] * (1.0 if major["side"] == "right" else -1.0)) if major else None}
+    for side in ("right", "left"):
+        c = cobb[side]
+        out[side] = ({"size": c["value_deg"], "level": c["apex_level"],
+                      "height_mm": c["apex_level"] * (z_vp - z_sp)} if c else None)
+    return out
+
+
 def _sides(sections, key):
     """``{"right", "left"}``: each side's largest value of ``key`` over the sections, with its level (see
     :func:`_summary`)."""
@@ -372,8 +386,9 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         "kyphotic_angle_deg": sagittal["kyphotic_angle_deg"] if sagittal else None,
         "lordotic_angle_deg": sagittal["lordotic_angle_deg"] if sagittal else None,
         "sagittal_levels": sagittal["levels"] if sagittal else None,
-        # signed as the other lateral figures: + when the major curve is convex to the patient's right
-        "cobb_estimate_deg": (cobb["value_deg"] * (1 if cobb["side"] == "right" else -1)) if cobb else None,
+        # as the other sided figures: each side's largest curve (the size, its apex's level and height above
+        # SP), and the major curve's signed (+ convex to the patient's right)
+        "cobb_estimate_deg": _cobb_sides(cobb, sp[2], vp[2]),
         "cobb_estimate": {**cobb, "note": COBB_NOTE} if cobb else None,
         "pelvic_obliquity_mm": pelvis["pelvic_obliquity_mm"],
         "pelvic_obliquity_deg": pelvis["pelvic_obliquity_deg"],
@@ -424,9 +439,8 @@ SIDED = ("lateral_deviation_mm", "surface_rotation_deg", "spine_lateral_deviatio
 # figures read at the lumbar dimples
 PELVIC = ("pelvic_obliquity_mm", "pelvic_obliquity_deg", "pelvic_torsion_deg")
 
-COBB_NOTE = ("an estimate of the major curve's Cobb angle from the back's surface, not a radiograph; against the "
-             "simulator's true spines it was 19 deg off on average and up to 84 deg (docs/analysis.md): not for "
-             "clinical use, and not shown on the clinic's pages")
+COBB_NOTE = ("estimates of the curves' Cobb angles from the back's surface, not radiographs; their error against "
+             "the simulator's true spines is in docs/analysis.md")
 
 
 # figures that rest on VP and SP (the sections between them, the line joining them, the length): a landmark

@@ -10,10 +10,11 @@ definitions follow rasterstereography (Drerup and Hierholzer; the Formetric's re
   between the sacral point and the lordosis's hollow);
 - pelvic obliquity: the height of the right lumbar dimple above the left (mm, and as an angle over their
   distance apart); pelvic torsion: the right dimple's sagittal surface inclination minus the left's (deg);
-- Cobb-angle estimate: the largest angle between two tangents of the spine's frontal-plane line (the
-  symmetry line moved by the spine's depth and the section's rotation), the major curve's. It is an
-  estimate from the surface, never a radiograph: ``docs/analysis.md`` gives its error against the
-  simulator's true spine.
+- Cobb-angle estimates: the angle between the end tangents of each curve of the spine's frontal-plane line
+  (the symmetry line moved by the spine's depth and the section's rotation), every curve of a C or an S
+  with its own side; the largest is the major curve, unless a curve of the other side is nearly as large.
+  They are estimates from the surface, never radiographs: ``docs/analysis.md`` gives their error against
+  the simulator's true spines.
 """
 
 from __future__ import annotations
@@ -79,30 +80,95 @@ def sagittal_angles(z: np.ndarray, depth: np.ndarray, z_sp: float, z_vp: float, 
                        "lordotic_apex": float(u[k_lord]), "ils": float(u[k_ils])}}
 
 
-def cobb_estimate(z: np.ndarray, lateral: np.ndarray, z_sp: float, z_vp: float, step_mm: float = 4.0,
-                  smooth_mm: float = 20.0) -> dict | None:
-    """The major curve's Cobb-angle estimate (deg) from the spine's lateral position ``lateral(z)`` (mm, +
-    towards the patient's right) between the sacral point and VP.
+def tangent_turns(theta: np.ndarray, swing_deg: float) -> list[int]:
+    """Indices of the alternating extremes of a tangent-angle profile ``theta`` (deg, bottom to top), each
+    differing from the next by more than ``swing_deg``: the end tangents of the curves between them.
 
-    The angle between the steepest tangents either side of the curve's apex: the tangent angle swings one
-    way above a curve's apex and the other way below it, so its largest swing picks the major curve of a C
-    or an S. Returns ``{"value_deg" (>= 0), "side" ("right"/"left": the curve's convex side),
-    "apex_level", "upper_level", "lower_level" (fractions SP 0 -> VP 1)}`` or None.
+    A wiggle smaller than ``swing_deg`` (noise on a straight stretch) makes no extreme of its own. The profile's
+    ends count where the tangent keeps turning up to them (a curve that runs past the measured trunk).
+    """
+    theta = np.asarray(theta, float)
+    n = len(theta)
+    if n < 2:
+        return []
+    # the first move larger than the swing sets the first direction; the start's side of it is the first extreme
+    moved = np.nonzero(np.abs(theta - theta[0]) > swing_deg)[0]
+    if not len(moved):
+        return []
+    first = int(moved[0])
+    rising = theta[first] > theta[0]
+    turns = [int(np.argmin(theta[:first + 1]) if rising else np.argmax(theta[:first + 1]))]
+    cand = first
+    for i in range(first + 1, n):
+        if (theta[i] > theta[cand]) if rising else (theta[i] < theta[cand]):
+            cand = i
+        elif abs(theta[cand] - theta[i]) > swing_deg:
+            turns.append(cand)
+            rising, cand = not rising, i
+    turns.append(cand)
+    return turns
+
+
+# the region a curve is named by, from its apex's level (fraction SP 0 -> VP 1; SP about S1, VP C7, the lumbar
+# vertebrae taller than the thoracic): below 0.45 (about T11) thoracolumbar or lumbar, as Lenke's
+# classification groups them; up to 0.8 (about T5) thoracic; above it upper thoracic. Approximate: the levels
+# of the vertebrae are not seen on the skin
+CURVE_REGIONS = ((0.45, "thoracolumbar/lumbar"), (0.8, "thoracic"), (np.inf, "upper thoracic"))
+
+
+def spine_curves(z: np.ndarray, lateral: np.ndarray, z_sp: float, z_vp: float, step_mm: float = 4.0,
+                 smooth_mm: float = 25.0, swing_deg: float = 3.0, min_deg: float = 5.0) -> list[dict] | None:
+    """Every curve of the spine's frontal line ``lateral(z)`` (mm, + towards the patient's right) between the
+    sacral point and VP, with its Cobb-angle estimate (deg), bottom to top.
+
+    The line is smoothed (Gaussian, ``smooth_mm``: about a vertebra's height) and its tangent angle read
+    along the trunk; a curve lies between two successive extremes of that angle (:func:`tangent_turns`),
+    which stand for its end vertebrae, and its Cobb angle is the angle between them. A curve of a C has one,
+    an S two, each with its own side. Returns ``[{"value_deg", "side" ("right"/"left": the convex side),
+    "region" (lumbar, thoracolumbar, thoracic), "apex_level", "lower_level", "upper_level" (fractions SP 0
+    -> VP 1)}]`` for the curves of at least ``min_deg``, or None where the line does not span the trunk.
     """
     profile = _trunk_profile(z, lateral, z_sp, z_vp, step_mm, smooth_mm)
     if profile is None:
         return None
     zg, x, u = profile
     theta = np.degrees(np.arctan(np.gradient(x, zg)))
-    k_hi, k_lo = int(np.argmax(theta)), int(np.argmin(theta))
-    a, b = sorted((k_hi, k_lo))
-    # the apex: the point between the two tangents farthest from the chord joining them
-    chord = x[a] + (x[b] - x[a]) * (zg[a:b + 1] - zg[a]) / max(zg[b] - zg[a], 1e-9)
-    off = x[a:b + 1] - chord
-    k_apex = a + int(np.argmax(np.abs(off)))
-    convex_right = off[k_apex - a] > 0
-    return {"value_deg": float(theta[k_hi] - theta[k_lo]), "side": "right" if convex_right else "left",
-            "apex_level": float(u[k_apex]), "upper_level": float(u[b]), "lower_level": float(u[a])}
+    turns = tangent_turns(theta, swing_deg)
+    curves = []
+    for a, b in zip(turns[:-1], turns[1:]):
+        value = float(abs(theta[b] - theta[a]))
+        if value < min_deg:
+            continue
+        # the apex: the point between the two end tangents farthest from the chord joining them
+        chord = x[a] + (x[b] - x[a]) * (zg[a:b + 1] - zg[a]) / max(zg[b] - zg[a], 1e-9)
+        k = a + int(np.argmax(np.abs(x[a:b + 1] - chord)))
+        # the tangent turning towards the left going up bends the line out to the right: convex right
+        side = "right" if theta[b] < theta[a] else "left"
+        region = next(name for top, name in CURVE_REGIONS if u[k] < top)
+        curves.append({"value_deg": value, "side": side, "region": region, "apex_level": float(u[k]),
+                       "lower_level": float(u[a]), "upper_level": float(u[b])})
+    return curves
+
+
+def cobb_estimate(z: np.ndarray, lateral: np.ndarray, z_sp: float, z_vp: float, step_mm: float = 4.0,
+                  smooth_mm: float = 25.0, swing_deg: float = 3.0, min_deg: float = 5.0,
+                  double_major_deg: float = 5.0) -> dict | None:
+    """The Cobb-angle estimates (deg) of the spine's curves (:func:`spine_curves`) and which is the major one.
+
+    Returns ``{"curves": [...], "major": the largest curve or None, "double_major": True where a curve of the
+    other side is within ``double_major_deg`` of it (two curves nearly alike: which one is larger is within
+    the estimate's error, so neither is called the major one alone), "right", "left": each side's largest
+    curve or None}``, or None where the line does not span the trunk.
+    """
+    curves = spine_curves(z, lateral, z_sp, z_vp, step_mm, smooth_mm, swing_deg, min_deg)
+    if curves is None:
+        return None
+    major = max(curves, key=lambda c: c["value_deg"]) if curves else None
+    sides = {side: max((c for c in curves if c["side"] == side), key=lambda c: c["value_deg"], default=None)
+             for side in ("right", "left")}
+    other = sides["left" if major and major["side"] == "right" else "right"] if major else None
+    double = bool(other and major["value_deg"] - other["value_deg"] < double_major_deg)
+    return {"curves": curves, "major": major, "double_major": double, **sides}
 
 
 def pelvic_figures(left: np.ndarray, right: np.ndarray, incl_left_deg: float, incl_right_deg: float) -> dict:
@@ -120,4 +186,4 @@ def pelvic_figures(left: np.ndarray, right: np.ndarray, incl_left_deg: float, in
             "pelvic_torsion_deg": float(incl_right_deg - incl_left_deg), "dimple_distance_mm": dx}
 
 
-__all__ = ["cobb_estimate", "pelvic_figures", "sagittal_angles"]
+__all__ = ["CURVE_REGIONS", "cobb_estimate", "pelvic_figures", "sagittal_angles", "spine_curves", "tangent_turns"]

@@ -53,8 +53,13 @@ LANDMARK_KEYS = ("vertebra_prominens", "sacral_point", "dimple_left", "dimple_ri
 FIGURES = ("surface_rotation_deg.max", "surface_rotation_deg.rms", "lateral_deviation_mm.max",
            "lateral_deviation_mm.rms", "spine_lateral_deviation_mm.max", "midline_rotation_deg.max", "hump_mm",
            "trunk_imbalance_mm", "trunk_length_mm", "asymmetry_mm", "kyphotic_angle_deg", "lordotic_angle_deg",
-           "cobb_estimate_deg", "pelvic_obliquity_mm", "pelvic_torsion_deg")
+           "cobb_estimate_deg.max", "pelvic_obliquity_mm", "pelvic_torsion_deg")
 MDC_MIN_BODIES = 10
+# the true Cobb angles: the simulated spine's frontal line smoothed over about a vertebra's height (the end
+# vertebrae's endplates average the line over one; unsmoothed, the simulator's line has 1-2 deg wiggles where
+# its two curves' shapes join, which no radiograph would call curves), read as the estimate reads its own line
+TRUE_COBB_SMOOTH_MM = 20.0
+CURVE_MATCH_LEVELS = 0.2  # an estimated curve stands for a true one of its side with its apex this close
 
 
 def draw_body(rng: np.random.Generator) -> dict:
@@ -109,9 +114,11 @@ def true_profiles(cfg, s) -> dict:
         out["kyphotic_angle_deg"], out["lordotic_angle_deg"] = sag["kyphotic_angle_deg"], sag["lordotic_angle_deg"]
     levels = np.linspace(0, 1, 401)
     lateral, _ = curve_profiles(levels, cfg.subject, p.rotation_deg, p.lateral_mm)
-    cobb = cobb_estimate(z_sp + levels * (z_vp - z_sp), lateral, z_sp, z_vp)
-    if cobb:
-        out["cobb_estimate_deg"] = cobb["value_deg"] * (1 if cobb["side"] == "right" else -1)
+    cobb = cobb_estimate(z_sp + levels * (z_vp - z_sp), lateral, z_sp, z_vp, step_mm=1.0,
+                         smooth_mm=TRUE_COBB_SMOOTH_MM)
+    if cobb and cobb["major"]:
+        out["cobb_estimate_deg.max"] = cobb["major"]["value_deg"] * (1 if cobb["major"]["side"] == "right" else -1)
+        out["cobb_curves"] = cobb["curves"]
     if "dimple_left" in lm:
         out["pelvic_obliquity_mm"] = float(lm["dimple_right"][2] - lm["dimple_left"][2])
     return out
@@ -242,8 +249,58 @@ def summarise(bodies, mdc) -> dict:
             rows[f"flagged_{name}"] = f"{sum(flags)}/{len(flags)}" if flags else None
         idx[k] = rows
     out["indices"] = idx
+    out["cobb_curves"] = cobb_curve_errors(bodies)
     out["seconds_per_scan"] = float(np.median([s["seconds"] for s in scans]))
     return out
+
+
+def match_curves(estimated: list, true: list) -> list:
+    """``(true curve, estimated curve or None)`` for every true curve: one to one, the closest apexes of the same
+    side first, within :data:`CURVE_MATCH_LEVELS` (a true curve left without one was missed)."""
+    near = sorted((abs(c["apex_level"] - t["apex_level"]), i, j) for i, t in enumerate(true)
+                  for j, c in enumerate(estimated)
+                  if c["side"] == t["side"] and abs(c["apex_level"] - t["apex_level"]) <= CURVE_MATCH_LEVELS)
+    pair, used = {}, set()
+    for _, i, j in near:
+        if i not in pair and j not in used:
+            pair[i] = j
+            used.add(j)
+    return [(t, estimated[pair[i]] if i in pair else None) for i, t in enumerate(true)]
+
+
+def cobb_curve_errors(bodies) -> dict:
+    """Every true curve's Cobb estimate against the truth, the curves missed and the extra ones, the major
+    curve's side, and each curve's same-day re-scan change."""
+    err, missed, extra, major, majors, double, change = [], 0, 0, 0, 0, 0, []
+    for b in bodies:
+        got = {}
+        for name, s in b["scans"].items():
+            est = ((s.get("report") or {}).get("cobb_estimate") or {})
+            true = s.get("truth", {}).get("cobb_curves")
+            if "curves" not in est or true is None:
+                continue
+            pairs = match_curves(est["curves"], true)
+            got[name] = pairs
+            err += [c["value_deg"] - t["value_deg"] for t, c in pairs if c is not None]
+            missed += sum(c is None for _, c in pairs)
+            extra += len(est["curves"]) - sum(c is not None for _, c in pairs)
+            if est["major"] and true:
+                majors += 1
+                t_major = max(true, key=lambda c: c["value_deg"])
+                major += est["major"]["side"] == t_major["side"]
+                double += bool(est["double_major"])
+        if "baseline" in got and "rescan" in got:
+            for (t, a), (_, c) in zip(got["baseline"], got["rescan"]):
+                if a is not None and c is not None:
+                    change.append(c["value_deg"] - a["value_deg"])
+    err, change = np.array(err), np.array(change)
+    return {"true_curves": int(len(err) + missed), "matched": int(len(err)), "missed": int(missed),
+            "extra": int(extra),
+            "error_deg": {"mean": float(err.mean()), "mean_abs": float(np.abs(err).mean()),
+                          "max_abs": float(np.abs(err).max())} if len(err) else None,
+            "rescan_change_deg": {"mean_abs": float(np.abs(change).mean()), "max_abs": float(np.abs(change).max()),
+                                  "pairs": int(len(change))} if len(change) else None,
+            "major_on_the_truths_side": f"{major}/{majors}", "double_major": f"{double}/{majors}"}
 
 
 def main(argv=None):

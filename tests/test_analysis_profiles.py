@@ -6,7 +6,7 @@ import pytest
 from analysis.backsurface import DepthMap
 from analysis.indices import withhold
 from analysis.landmarks import find_dimples
-from analysis.profiles import cobb_estimate, pelvic_figures, sagittal_angles
+from analysis.profiles import cobb_estimate, pelvic_figures, sagittal_angles, tangent_turns
 
 
 def _profile(u):
@@ -40,9 +40,56 @@ def test_it_estimates_the_cobb_angle_of_a_c_curve_and_its_side(sign, side):
     z = np.linspace(z_sp, z_sp + L, 41)
     lateral = sign * A * np.sin(np.pi * (z - z_sp) / L)  # + towards the patient's right
     got = cobb_estimate(z, lateral, z_sp, z_sp + L, smooth_mm=2.0)
-    assert got["value_deg"] == pytest.approx(2 * np.degrees(np.arctan(A * np.pi / L)), abs=0.6)
-    assert got["side"] == side
-    assert got["apex_level"] == pytest.approx(0.5, abs=0.03)
+    assert len(got["curves"]) == 1
+    major = got["major"]
+    assert major["value_deg"] == pytest.approx(2 * np.degrees(np.arctan(A * np.pi / L)), abs=0.6)
+    assert major["side"] == side and got[side] == major and got["left" if side == "right" else "right"] is None
+    assert major["apex_level"] == pytest.approx(0.5, abs=0.03)
+    assert major["region"] == "thoracic" and not got["double_major"]
+
+
+def _s_curve(z, z_sp, L, upper, lower):
+    """A right thoracic curve of amplitude ``upper`` (mm) over the top 60 % and a left lumbar one of ``lower``
+    over the bottom 40 %: each a half sine, so each curve's Cobb angle is 2·atan(amplitude·pi / span)."""
+    u = (z - z_sp) / L
+    return np.where(u >= 0.4, upper * np.sin(np.pi * (u - 0.4) / 0.6), -lower * np.sin(np.pi * u / 0.4))
+
+
+def test_it_gives_both_curves_of_an_s_each_with_its_side_and_region():
+    z_sp, L = 800.0, 450.0
+    z = np.linspace(z_sp, z_sp + L, 91)
+    got = cobb_estimate(z, _s_curve(z, z_sp, L, 20.0, 8.0), z_sp, z_sp + L, smooth_mm=2.0)
+    lumbar, thoracic = got["curves"]  # bottom to top
+    assert (lumbar["side"], lumbar["region"]) == ("left", "thoracolumbar/lumbar")
+    assert (thoracic["side"], thoracic["region"]) == ("right", "thoracic")
+    # the thoracic half sine is the steeper at the inflection, so its own tangents there and at the top bound it
+    assert thoracic["value_deg"] == pytest.approx(2 * np.degrees(np.arctan(20.0 * np.pi / (0.6 * L))), abs=1.0)
+    assert lumbar["lower_level"] < lumbar["apex_level"] < lumbar["upper_level"] <= thoracic["lower_level"] + 0.02
+    assert got["major"] is thoracic and got["right"] is thoracic and got["left"] is lumbar
+    assert not got["double_major"]
+
+
+def test_it_calls_two_nearly_equal_curves_a_double_major():
+    z_sp, L = 800.0, 450.0
+    z = np.linspace(z_sp, z_sp + L, 91)
+    # a lumbar curve over 40 % of the trunk with 2/3 of the thoracic one's amplitude bends about as much
+    got = cobb_estimate(z, _s_curve(z, z_sp, L, 15.0, 10.0), z_sp, z_sp + L, smooth_mm=2.0)
+    assert abs(got["right"]["value_deg"] - got["left"]["value_deg"]) < 5.0
+    assert got["double_major"]
+
+
+def test_it_makes_no_curve_of_noise_on_a_straight_spine():
+    z_sp, L = 800.0, 450.0
+    z = np.linspace(z_sp, z_sp + L, 91)
+    rng = np.random.default_rng(3)
+    got = cobb_estimate(z, rng.normal(0.0, 1.0, len(z)), z_sp, z_sp + L)
+    assert got["curves"] == [] and got["major"] is None and not got["double_major"]
+
+
+def test_tangent_turns_ignores_a_wiggle_smaller_than_the_swing():
+    theta = np.array([0.0, 4.0, 8.0, 7.0, 8.5, 10.0, 2.0, -6.0, -5.0])
+    assert tangent_turns(theta, 3.0) == [0, 5, 7]
+    assert tangent_turns(np.zeros(5), 3.0) == []
 
 
 def test_it_tells_the_right_side_of_the_pelvis_higher_as_positive():
