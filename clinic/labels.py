@@ -49,7 +49,7 @@ INDICES: dict[str, Index] = {
     "cobb_estimate_deg.max": Index(
         "Cobb angle, estimated from the surface (largest curve)", "°",
         "An estimate, not a radiograph: the angle between the end tangents of each curve of the spine line "
-        "estimated beneath the back's midline. On simulated bodies it was within 2° of the spine's true Cobb "
+        "estimated beneath the back's midline. On simulated bodies it was 1.5° from the spine's true Cobb "
         "angle on average (at worst 7.5°); against radiographs surface estimates are less accurate, so a decision "
         "that needs the Cobb angle needs a radiograph.",
         "curve convex to the patient's right", "curve convex to the patient's left"),
