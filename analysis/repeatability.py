@@ -46,7 +46,8 @@ INDEX_FIGURES = ("lateral_deviation_mm.rms", "lateral_deviation_mm.max", "surfac
                  "surface_rotation_deg.max", "spine_lateral_deviation_mm.rms", "spine_lateral_deviation_mm.max",
                  "midline_rotation_deg.rms", "midline_rotation_deg.max", "hump_mm", "hump_angle_deg",
                  "trunk_imbalance_mm", "trunk_inclination_mm", "trunk_length_mm", "asymmetry_mm",
-                 "kyphotic_angle_deg", "lordotic_angle_deg", "pelvic_obliquity_mm", "pelvic_torsion_deg")
+                 "kyphotic_angle_deg", "lordotic_angle_deg", "pelvic_obliquity_mm", "pelvic_torsion_deg",
+                 "cobb_estimate_deg.max")
 
 
 # figures the spec keeps as one signed number, whose sides the report gives under another key
