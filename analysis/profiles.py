@@ -117,7 +117,7 @@ CURVE_REGIONS = ((0.45, "thoracolumbar/lumbar"), (0.8, "thoracic"), (np.inf, "up
 
 
 def spine_curves(z: np.ndarray, lateral: np.ndarray, z_sp: float, z_vp: float, step_mm: float = 4.0,
-                 smooth_mm: float = 25.0, swing_deg: float = 3.0, min_deg: float = 5.0) -> list[dict] | None:
+                 smooth_mm: float = 25.0, swing_deg: float = 3.0, min_deg: float = 0.0) -> list[dict] | None:
     """Every curve of the spine's frontal line ``lateral(z)`` (mm, + towards the patient's right) between the
     sacral point and VP, with its Cobb-angle estimate (deg), bottom to top.
 
@@ -126,7 +126,9 @@ def spine_curves(z: np.ndarray, lateral: np.ndarray, z_sp: float, z_vp: float, s
     which stand for its end vertebrae, and its Cobb angle is the angle between them. A curve of a C has one,
     an S two, each with its own side. Returns ``[{"value_deg", "side" ("right"/"left": the convex side),
     "region" (lumbar, thoracolumbar, thoracic), "apex_level", "lower_level", "upper_level" (fractions SP 0
-    -> VP 1)}]`` for the curves of at least ``min_deg``, or None where the line does not span the trunk.
+    -> VP 1)}]`` for the curves of at least ``min_deg`` (every curve the swing makes, by default: a
+    listing threshold above it lets a curve near it come and go between two scans of the same back, and
+    with it the largest value of its side), or None where the line does not span the trunk.
     """
     profile = _trunk_profile(z, lateral, z_sp, z_vp, step_mm, smooth_mm)
     if profile is None:
@@ -151,7 +153,7 @@ def spine_curves(z: np.ndarray, lateral: np.ndarray, z_sp: float, z_vp: float, s
 
 
 def cobb_estimate(z: np.ndarray, lateral: np.ndarray, z_sp: float, z_vp: float, step_mm: float = 4.0,
-                  smooth_mm: float = 25.0, swing_deg: float = 3.0, min_deg: float = 5.0,
+                  smooth_mm: float = 25.0, swing_deg: float = 3.0, min_deg: float = 0.0,
                   double_major_deg: float = 5.0) -> dict | None:
     """The Cobb-angle estimates (deg) of the spine's curves (:func:`spine_curves`) and which is the major one.
 
