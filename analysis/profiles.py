@@ -125,7 +125,7 @@ def spine_curves(z: np.ndarray, lateral: np.ndarray, z_sp: float, z_vp: float, s
     along the trunk; a curve lies between two successive extremes of that angle (:func:`tangent_turns`),
     which stand for its end vertebrae, and its Cobb angle is the angle between them. A curve of a C has one,
     an S two, each with its own side. Returns ``[{"value_deg", "side" ("right"/"left": the convex side),
-    "region" (lumbar, thoracolumbar, thoracic), "apex_level", "lower_level", "upper_level" (fractions SP 0
+    "region" (a name of :data:`CURVE_REGIONS`), "apex_level", "lower_level", "upper_level" (fractions SP 0
     -> VP 1)}]`` for the curves of at least ``min_deg`` (every curve the swing makes, by default: a
     listing threshold above it lets a curve near it come and go between two scans of the same back, and
     with it the largest value of its side), or None where the line does not span the trunk.
