@@ -91,8 +91,15 @@ def analyse_capture(scenario: Path, name: str, work: Path, rng: np.random.Genera
         marks = {n: (np.asarray(truth[n]) + rng.normal(0, CLICK_SIGMA_MM, 3)).tolist() for n in mark if truth.get(n)}
         rep = analyse_torso(torso, landmarks=marks).report
         marked = sorted(marks)
+    # every landmark against the simulator's (the same frame as the marks above), as found or as marked
+    truth = json.loads((scenario / "truth" / name / "truth.json").read_text())["landmarks"]
+    found = rep.get("landmarks") or {}
+    error = {k: (np.asarray(found[k]["position_mm"]) - truth[k]).tolist() for k in CORE_LANDMARKS
+             if (found.get(k) or {}).get("position_mm") is not None and truth.get(k) is not None}
     return {"report": rep, "marked": marked, "points": int(recon["points"]),
-            "reconstruction_s": round(recon["seconds"]["total"], 1), "status": recon["status"]}
+            "reconstruction_s": round(recon["seconds"]["total"], 1), "status": recon["status"],
+            "landmark_error": error,
+            "landmark_source": {k: (found.get(k) or {}).get("confidence") for k in CORE_LANDMARKS}}
 
 
 def run_set(label: str, seed: int, n_bodies: int, preset_name: str, out: Path, later_visit: bool, log) -> list:
@@ -150,6 +157,36 @@ def summarise(bodies, mdc) -> dict:
                      if f is not None]
             row[f"flagged_{name}"] = f"{sum(flags)}/{len(flags)}" if flags else None
         out["indices"][k] = row
+    out["landmarks"] = landmark_figures(bodies)
+    # each re-scan pair's changes and how its landmarks were placed: what a flag, or a large change, came from
+    out["rescans"] = [{"body": b["body"],
+                       "landmarks": {n: b["scans"][n].get("landmark_source") for n in ("visit0-a", "visit0-b")},
+                       "changes": {k: round(v["change"], 3) for k, v in
+                                   index_changes(b["scans"]["visit0-a"]["report"],
+                                                 b["scans"]["visit0-b"]["report"]).items()
+                                   if k in INDEX_FIGURES and isinstance(v.get("change"), (int, float))}}
+                      for b in bodies if all("report" in b["scans"].get(n, {}) for n in ("visit0-a", "visit0-b"))]
+    return out
+
+
+def landmark_figures(bodies) -> dict:
+    """Each trunk landmark's error against the simulator's point (found automatically with confidence) and its
+    same-day re-scan spread (mm): the change of its error between the two scans, so the patient's own movement
+    between them (sway, the rig's arms) does not count; both scans found automatically, or both marked."""
+    out = {}
+    for k in CORE_LANDMARKS:
+        scans = [s for b in bodies for s in b["scans"].values() if k in s.get("landmark_error", {})]
+        err = [float(np.linalg.norm(s["landmark_error"][k])) for s in scans if s["landmark_source"][k] == "high"]
+        row = {"found": f"{len(err)}/{len(scans)}", "marked": sum(s["landmark_source"][k] == "clinician" for s in scans),
+               "error_mm": {"median": float(np.median(err)), "max": float(np.max(err))} if err else None}
+        for how, src in (("found", "high"), ("marked", "clinician")):
+            spread = [float(np.linalg.norm(np.subtract(a["landmark_error"][k], b_["landmark_error"][k])))
+                      for a, b_ in ((b["scans"].get("visit0-a", {}), b["scans"].get("visit0-b", {})) for b in bodies)
+                      if all(k in x.get("landmark_error", {}) and x["landmark_source"][k] == src for x in (a, b_))]
+            row[f"rescan_spread_{how}_mm"] = {"median": float(np.median(spread)), "max": float(np.max(spread)),
+                                              "within_5mm": f"{sum(x <= 5 for x in spread)}/{len(spread)}"} \
+                if spread else None
+        out[k] = row
     return out
 
 
@@ -226,6 +263,13 @@ def main(argv=None):
             f"{r.get('rescan_change_max_abs') if r.get('rescan_change_max_abs') is not None else nan:11.2f} "
             f"{r.get('flagged_rescan') or '-':>16s} {r.get('flagged_plus5') or '-':>14s}"
             f" {cm if cm is not None else nan:10.2f} {c.get('flagged_rescan') or '-':>8s} {c.get('flagged_plus5') or '-':>6s}")
+    for label, part in (("tuning", res["tune"]), ("held out", res["report"])):
+        for k, v in ((part or {}).get("landmarks") or {}).items():
+            e, sf, sm = v["error_mm"], v["rescan_spread_found_mm"], v["rescan_spread_marked_mm"]
+            log(f"{label:8s} {k:18s} found {v['found']}, marked {v['marked']}; error median/max "
+                + (f"{e['median']:.1f}/{e['max']:.1f} mm" if e else "-") + "; re-scan spread found "
+                + (f"{sf['median']:.1f}/{sf['max']:.1f} mm ({sf['within_5mm']} within 5)" if sf else "-")
+                + ", marked " + (f"{sm['median']:.1f}/{sm['max']:.1f} mm" if sm else "-"))
     if args.json:
         Path(args.json).write_text(json.dumps(res, indent=1) + "\n", encoding="utf-8")
     if args.write_mdc:
