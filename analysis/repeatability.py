@@ -110,6 +110,15 @@ def _figure_change(earlier: dict, later: dict, fa: dict, fb: dict, key: str):
 
 # figures that are the trunk landmarks' own offsets (mm): VP against SP across, front to back and along
 LANDMARK_OFFSETS = ("trunk_imbalance_mm", "trunk_inclination_mm", "trunk_length_mm")
+# figures read at their apex, inside the trunk, that do not move with where its ends are put: still judged when a
+# trunk landmark was placed two ways. Every other figure rests on the ends (the lateral deviations on the line
+# joining them, the RMS figures, the sagittal angles, the Cobb estimate and the asymmetry on the stretch between
+# them): on the rendered demo re-scans (bench_rescans.py, 2026-12-04) the one held-out re-scan flagged (the spine
+# midline's RMS, -2.09 mm; the lateral deviation's RMS -1.79 mm) had its sacral point marked on one scan and
+# found on the other, 17-18 mm apart; the largest rotation and the hump of such pairs moved within their MDC
+APEX_FIGURES = ("surface_rotation_deg.max", "midline_rotation_deg.max", "hump_mm", "hump_angle_deg")
+# the pelvic figures rest on the lumbar dimples, which are only ever marked (automatic ones are suggestions)
+PELVIC_FIGURES = ("pelvic_obliquity_mm", "pelvic_torsion_deg")
 
 
 def placed_differently(earlier: dict, later: dict) -> list:
@@ -133,7 +142,7 @@ def mdc_from_index_pairs(pairs, figures=INDEX_FIGURES) -> dict:
 
     A signed maximum's change is taken side by side (:func:`_figure_change`), as :func:`index_changes` does.
     Pairs whose VP or SP was placed two ways (:func:`placed_differently`) stay in: such comparisons get no
-    verdict on the landmarks' offsets, but without them too few pairs would remain for an MDC (6 of 10 on the
+    verdict but on the apex and pelvic figures, but without them too few pairs would remain for an MDC (6 of 10 on the
     rendered tuning re-scans), and with them the MDC errs on the side of flagging less."""
     diffs = {}
     for a, b in pairs:
@@ -276,7 +285,8 @@ def index_changes(earlier: dict, later: dict, mdc: dict | None = None, figures=I
     """Change of every index between two ``torso-indices/1`` reports, flagged against its MDC.
 
     Returns ``{figure: {"earlier", "later", "change", "mdc", "exceeds_mdc"}}`` (and ``no_verdict``, the reason,
-    where a landmark offset is not judged: :func:`placed_differently`; and ``sides``, each side's own change,
+    where a trunk landmark was placed two ways: :func:`placed_differently`, every figure but
+    :data:`APEX_FIGURES` and :data:`PELVIC_FIGURES`; and ``sides``, each side's own change,
     for a figure compared side by side: :func:`_side_changes`). ``sides_agree=False``
     (the comparison's ``facing.consistent``): the two scans disagree on the patient's sides, and only the
     figures that do not depend on them are compared. A signed maximum (``X.max``) is compared side by side:
@@ -302,7 +312,7 @@ def index_changes(earlier: dict, later: dict, mdc: dict | None = None, figures=I
                 # sides measured on neither scan are left out
                 out[k]["sides"] = [{**side, "exceeds_mdc": exceeds_mdc(side["change"], m)} for side in pair[2]
                                    if side["earlier"] or side["later"]]
-            if mixed and k in LANDMARK_OFFSETS:
+            if mixed and k not in APEX_FIGURES + PELVIC_FIGURES:
                 names = " and ".join(n.replace("_", " ") for n in mixed)
                 out[k].update(exceeds_mdc=None, no_verdict=f"no verdict: the {names} was marked on one scan and "
                                                           "found automatically on the other; mark it on both")

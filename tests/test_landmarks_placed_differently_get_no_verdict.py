@@ -1,4 +1,4 @@
-"""A landmark marked on one scan and found automatically on the other: its own offsets are not judged."""
+"""A landmark marked on one scan and found automatically on the other: only the figures read at the apex are judged."""
 
 from analysis.repeatability import index_changes, placed_differently
 
@@ -21,8 +21,21 @@ def test_it_gives_no_verdict_on_the_offsets_of_a_landmark_placed_two_ways():
         assert ch[k]["exceeds_mdc"] is None
         assert "sacral point was marked on one scan" in ch[k]["no_verdict"]
     assert ch["trunk_length_mm"]["change"] == 20.0  # the change is still shown
-    # figures that are not the landmarks' own offsets are judged as before
-    assert ch["lateral_deviation_mm.rms"]["exceeds_mdc"] is False
+    # the lateral deviation is measured from the line joining the trunk's ends: the two scans put them apart
+    assert ch["lateral_deviation_mm.rms"]["exceeds_mdc"] is None
+    assert "sacral point was marked on one scan" in ch["lateral_deviation_mm.rms"]["no_verdict"]
+
+
+def test_it_still_judges_the_figures_read_at_the_apex():
+    marked, found = _report("clinician", 480.0, 1.0, 3.0), _report("auto", 500.0, 9.0, 3.5)
+    for r, rot, hump in ((marked, 8.0, 5.0), (found, 14.0, 5.5)):
+        r["surface_rotation_deg"] = {"max": rot, "right": {"size": rot}, "left": None}
+        r["hump_mm"], r["hump"] = hump, {"max": hump, "right": {"size": hump}, "left": None}
+    mdc = {**MDC, "surface_rotation_deg.max": {"mdc": 1.3}, "hump_mm": {"mdc": 3.0}}
+    ch = index_changes(marked, found, mdc)
+    assert ch["surface_rotation_deg.max"]["exceeds_mdc"] is True and "no_verdict" not in ch["surface_rotation_deg.max"]
+    assert ch["hump_mm"]["exceeds_mdc"] is False and "no_verdict" not in ch["hump_mm"]
+    assert ch["lateral_deviation_mm.rms"]["exceeds_mdc"] is None
 
 
 def test_it_judges_landmarks_placed_the_same_way():
