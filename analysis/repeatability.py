@@ -108,14 +108,13 @@ def _figure_change(earlier: dict, later: dict, fa: dict, fb: dict, key: str):
     return most["earlier"], most["later"], sides
 
 
-# figures that are the trunk landmarks' own offsets (mm): VP against SP across, front to back and along
-LANDMARK_OFFSETS = ("trunk_imbalance_mm", "trunk_inclination_mm", "trunk_length_mm")
 # figures read at their apex, inside the trunk, that do not move with where its ends are put: still judged when a
-# trunk landmark was placed two ways. Every other figure rests on the ends (the lateral deviations on the line
-# joining them, the RMS figures, the sagittal angles, the Cobb estimate and the asymmetry on the stretch between
-# them): on the rendered demo re-scans (bench_rescans.py, 2026-12-04) the one held-out re-scan flagged (the spine
-# midline's RMS, -2.09 mm; the lateral deviation's RMS -1.79 mm) had its sacral point marked on one scan and
-# found on the other, 17-18 mm apart; the largest rotation and the hump of such pairs moved within their MDC
+# trunk landmark was placed two ways. Every other figure rests on the ends (the landmarks' own offsets, the lateral
+# deviations on the line joining them, the RMS figures, the sagittal angles, the Cobb estimate and the asymmetry
+# on the stretch between them): on the rendered demo re-scans (bench_rescans.py, 2026-12-04) the one held-out
+# re-scan flagged (the spine midline's RMS, -2.09 mm; the lateral deviation's RMS -1.79 mm) had its sacral point
+# marked on one scan and found on the other, 17-18 mm apart; the largest rotation and the hump of such pairs
+# moved within their MDC
 APEX_FIGURES = ("surface_rotation_deg.max", "midline_rotation_deg.max", "hump_mm", "hump_angle_deg")
 # the pelvic figures rest on the lumbar dimples, which are only ever marked (automatic ones are suggestions)
 PELVIC_FIGURES = ("pelvic_obliquity_mm", "pelvic_torsion_deg")
@@ -141,8 +140,8 @@ def mdc_from_index_pairs(pairs, figures=INDEX_FIGURES) -> dict:
     """MDC of each index from repeat pairs of ``torso-indices/1`` reports: ``{figure: {"sem", "mdc", "n"}}``.
 
     A signed maximum's change is taken side by side (:func:`_figure_change`), as :func:`index_changes` does.
-    Pairs whose VP or SP was placed two ways (:func:`placed_differently`) stay in: such comparisons get no
-    verdict but on the apex and pelvic figures, but without them too few pairs would remain for an MDC (6 of 10 on the
+    Pairs whose VP or SP was placed two ways (:func:`placed_differently`) stay in: such comparisons are judged on
+    the apex and pelvic figures only, but without them too few pairs would remain for an MDC (6 of 10 on the
     rendered tuning re-scans), and with them the MDC errs on the side of flagging less."""
     diffs = {}
     for a, b in pairs:

@@ -99,7 +99,7 @@ def analyse_capture(scenario: Path, name: str, work: Path, rng: np.random.Genera
     return {"report": rep, "marked": marked, "points": int(recon["points"]),
             "reconstruction_s": round(recon["seconds"]["total"], 1), "status": recon["status"],
             "landmark_error": error,
-            "landmark_source": {k: (found.get(k) or {}).get("confidence") for k in CORE_LANDMARKS}}
+            "landmark_confidence": {k: (found.get(k) or {}).get("confidence") for k in CORE_LANDMARKS}}
 
 
 def run_set(label: str, seed: int, n_bodies: int, preset_name: str, out: Path, later_visit: bool, log) -> list:
@@ -160,7 +160,7 @@ def summarise(bodies, mdc) -> dict:
     out["landmarks"] = landmark_figures(bodies)
     # each re-scan pair's changes and how its landmarks were placed: what a flag, or a large change, came from
     out["rescans"] = [{"body": b["body"],
-                       "landmarks": {n: b["scans"][n].get("landmark_source") for n in ("visit0-a", "visit0-b")},
+                       "landmarks": {n: b["scans"][n].get("landmark_confidence") for n in ("visit0-a", "visit0-b")},
                        "changes": {k: round(v["change"], 3) for k, v in
                                    index_changes(b["scans"]["visit0-a"]["report"],
                                                  b["scans"]["visit0-b"]["report"]).items()
@@ -176,13 +176,14 @@ def landmark_figures(bodies) -> dict:
     out = {}
     for k in CORE_LANDMARKS:
         scans = [s for b in bodies for s in b["scans"].values() if k in s.get("landmark_error", {})]
-        err = [float(np.linalg.norm(s["landmark_error"][k])) for s in scans if s["landmark_source"][k] == "high"]
-        row = {"found": f"{len(err)}/{len(scans)}", "marked": sum(s["landmark_source"][k] == "clinician" for s in scans),
+        err = [float(np.linalg.norm(s["landmark_error"][k])) for s in scans if s["landmark_confidence"][k] == "high"]
+        row = {"found": f"{len(err)}/{len(scans)}",
+               "marked": sum(s["landmark_confidence"][k] == "clinician" for s in scans),
                "error_mm": {"median": float(np.median(err)), "max": float(np.max(err))} if err else None}
         for how, src in (("found", "high"), ("marked", "clinician")):
             spread = [float(np.linalg.norm(np.subtract(a["landmark_error"][k], b_["landmark_error"][k])))
                       for a, b_ in ((b["scans"].get("visit0-a", {}), b["scans"].get("visit0-b", {})) for b in bodies)
-                      if all(k in x.get("landmark_error", {}) and x["landmark_source"][k] == src for x in (a, b_))]
+                      if all(k in x.get("landmark_error", {}) and x["landmark_confidence"][k] == src for x in (a, b_))]
             row[f"rescan_spread_{how}_mm"] = {"median": float(np.median(spread)), "max": float(np.max(spread)),
                                               "within_5mm": f"{sum(x <= 5 for x in spread)}/{len(spread)}"} \
                 if spread else None
@@ -267,7 +268,8 @@ def main(argv=None):
         for k, v in ((part or {}).get("landmarks") or {}).items():
             e, sf, sm = v["error_mm"], v["rescan_spread_found_mm"], v["rescan_spread_marked_mm"]
             log(f"{label:8s} {k:18s} found {v['found']}, marked {v['marked']}; error median/max "
-                + (f"{e['median']:.1f}/{e['max']:.1f} mm" if e else "-") + "; re-scan spread found "
+                + (f"{e['median']:.1f}/{e['max']:.1f} mm" if e else "-")
+                + "; re-scan spread found "
                 + (f"{sf['median']:.1f}/{sf['max']:.1f} mm ({sf['within_5mm']} within 5)" if sf else "-")
                 + ", marked " + (f"{sm['median']:.1f}/{sm['max']:.1f} mm" if sm else "-"))
     if args.json:
