@@ -123,8 +123,7 @@ def section_symmetry(Q: np.ndarray, x0: float, normals: np.ndarray | None = None
                      min_agreement: float = 0.0, agree_mm: float = 5.0) -> tuple[float, float]:
     """Axial rotation (deg) of one transverse section of the trunk, from its mirror symmetry, and the share of
     the section's points whose registered mirror image lies within ``agree_mm`` (mm) of the outline; the
-    rotation is NaN where that share is below ``min_agreement``, or where the section reaches less than half as
-    far on one side of ``x0`` as on the other.
+    rotation is NaN where that share is below ``min_agreement``.
 
     ``Q``: (n, 2) patient-frame ``x`` (left) and ``y`` (posterior) of the section's points, back and front, arms
     cut off; ``normals``: their outward normals' horizontal parts (n, 2). The section reflected about ``x = x0``
@@ -140,12 +139,6 @@ def section_symmetry(Q: np.ndarray, x0: float, normals: np.ndarray | None = None
     Q = np.asarray(Q, float)
     nan = (float("nan"), float("nan"))
     if len(Q) < 60 or not np.isfinite(x0):
-        return nan
-    # a section seen on one side of the symmetry point only (the run holding the midline cut at a hole beside
-    # it) is no trunk's outline: the free translation slides the mirror image onto that half's own axis, which
-    # then read 85 deg on a rendered re-scan (agreement 0.84)
-    reach = (x0 - Q[:, 0].min(), Q[:, 0].max() - x0)
-    if min(reach) < 0.5 * max(reach):
         return nan
     if normals is not None:
         Nn = np.asarray(normals, float)
@@ -231,26 +224,12 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
     back = back_points(P, N, ic)
     auto = detect_landmarks(P, back, dmap, ic)
     # the yaw again, from the trunk's ends only (pelvis at SP, shoulders at VP): a scoliotic curve turns the
-    # sections between them and would tilt a whole-trunk mirror plane towards its own rotation. The ends in use:
-    # a clinician's mark where there is one (an automatic VP the shape did not show, at the neck's narrowing,
-    # put the shoulders' band elsewhere on each of two same-day scans and turned every section by 3 deg)
-    given = {k: frame.to_patient(np.asarray(v, float).reshape(3))[2] for k, v in (landmarks or {}).items()
-             if k in CORE_LANDMARKS and v is not None}
-    z_sp = given.get("sacral_point", auto["sacral_point"][2])
-    z_vp = given.get("vertebra_prominens", auto["vertebra_prominens"][2])
+    # sections between them and would tilt a whole-trunk mirror plane towards its own rotation
+    z_sp, z_vp = auto["sacral_point"][2], auto["vertebra_prominens"][2]
     if np.isfinite(z_sp) and np.isfinite(z_vp) and z_vp > z_sp + 100:
         L = z_vp - z_sp
-
-        def end_band(k, lo, hi):
-            # a mark beyond the scanned surface (an SP below a scan that starts at the waist) leaves its band
-            # empty: the yaw is then read at the automatic end, as it was before marks were taken here
-            for z in ([given[k]] if k in given else []) + [auto[k][2]]:
-                band = trunk_mask(P, z + lo * L, z + hi * L, ic)
-                if band.sum() >= 250:
-                    break
-            return band
-
-        ends = end_band("sacral_point", -ic.yaw_band, ic.yaw_band) | end_band("vertebra_prominens", -ic.yaw_band, 0.0)
+        ends = trunk_mask(P, z_sp - ic.yaw_band * L, z_sp + ic.yaw_band * L, ic) | \
+            trunk_mask(P, z_vp - ic.yaw_band * L, z_vp, ic)
         if ends.sum() > 500:
             try:
                 sym2 = symmetry_plane(torso, frame, rc, mask=ends, index=index)
