@@ -148,13 +148,15 @@ def summarise(bodies, mdc) -> dict:
            "failed": {f"{b['body']}/{k}": v["failed"] for b in bodies for k, v in b["scans"].items() if "failed" in v},
            "marked_by_clinician": sum(bool(v.get("marked")) for b in bodies for v in b["scans"].values()),
            "indices": {}}
+    # every pair's changes once, judged against the tuning MDC (the change itself does not depend on it)
+    judged = {k: (mdc.get(k) or {}).get("mdc") for k in INDEX_FIGURES}
+    changes = {name: [index_changes(a, b, judged) for a, b in pairs]
+               for name, pairs in (("rescan", rescans), ("plus5", later))}
     for k in INDEX_FIGURES:
-        m = (mdc.get(k) or {}).get("mdc")
-        ch = [c[k]["change"] for c in (index_changes(a, b, figures=(k,)) for a, b in rescans) if k in c]
-        row = {"mdc": m, "rescan_change_max_abs": float(np.max(np.abs(ch))) if ch else None}
-        for name, pairs in (("rescan", rescans), ("plus5", later)):
-            flags = [f for f in (index_changes(a, b, {k: m}).get(k, {}).get("exceeds_mdc") for a, b in pairs)
-                     if f is not None]
+        ch = [c[k]["change"] for c in changes["rescan"] if k in c]
+        row = {"mdc": judged[k], "rescan_change_max_abs": float(np.max(np.abs(ch))) if ch else None}
+        for name, pair_changes in changes.items():
+            flags = [f for f in (c.get(k, {}).get("exceeds_mdc") for c in pair_changes) if f is not None]
             row[f"flagged_{name}"] = f"{sum(flags)}/{len(flags)}" if flags else None
         out["indices"][k] = row
     out["landmarks"] = landmark_figures(bodies)
