@@ -123,7 +123,8 @@ def section_symmetry(Q: np.ndarray, x0: float, normals: np.ndarray | None = None
                      min_agreement: float = 0.0, agree_mm: float = 5.0) -> tuple[float, float]:
     """Axial rotation (deg) of one transverse section of the trunk, from its mirror symmetry, and the share of
     the section's points whose registered mirror image lies within ``agree_mm`` (mm) of the outline; the
-    rotation is NaN where that share is below ``min_agreement``.
+    rotation is NaN where that share is below ``min_agreement``, or where the section reaches less than half as
+    far on one side of ``x0`` as on the other.
 
     ``Q``: (n, 2) patient-frame ``x`` (left) and ``y`` (posterior) of the section's points, back and front, arms
     cut off; ``normals``: their outward normals' horizontal parts (n, 2). The section reflected about ``x = x0``
@@ -139,6 +140,12 @@ def section_symmetry(Q: np.ndarray, x0: float, normals: np.ndarray | None = None
     Q = np.asarray(Q, float)
     nan = (float("nan"), float("nan"))
     if len(Q) < 60 or not np.isfinite(x0):
+        return nan
+    # a section seen on one side of the symmetry point only (the run holding the midline cut at a hole beside
+    # it) is no trunk's outline: the free translation slides the mirror image onto that half's own axis, which
+    # then read 85 deg on a rendered re-scan (agreement 0.84)
+    reach = (x0 - Q[:, 0].min(), Q[:, 0].max() - x0)
+    if min(reach) < 0.5 * max(reach):
         return nan
     if normals is not None:
         Nn = np.asarray(normals, float)
@@ -478,7 +485,12 @@ def _clinician_facing(torso: Torso, landmarks: dict | None) -> dict | None:
     from .torso import axis_points
 
     vp = np.asarray(vp, float).reshape(3)
-    axis = axis_points(torso.points, np.array([vp[2]]))[0]
+    # the trunk's axis through the shoulders, the 150 mm below the mark: at the mark's own height a scan cut at
+    # C7 has only a few shoulder-top points, whose middle can lie beside the neck
+    z = torso.points[:, 2]
+    band = (z >= vp[2] - 150.0) & (z <= vp[2])
+    axis = np.median(torso.points[band, :2], axis=0) if band.sum() >= 200 else \
+        axis_points(torso.points, np.array([vp[2]]))[0]
     v = np.array([vp[0] - axis[0], vp[1] - axis[1], 0.0])
     if np.linalg.norm(v) < 20.0:  # on the axis: says nothing of the facing
         return None

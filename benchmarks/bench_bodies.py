@@ -17,6 +17,11 @@ repeatability (the MDC of every index from its same-day re-scans: ``--write-mdc`
 the analysis's defaults may be chosen; ``report`` (held out, ``--report-seed``, default 200) is measured
 against that MDC.
 
+A scan on which the analysis asks for a trunk landmark (VP or SP: "not measurable on this scan: mark the
+landmark") is analysed again with that landmark marked as a clinician would, the simulator's point plus a
+click's error (``CLICK_SIGMA_MM`` per axis, its own random stream), as ``bench_rescans.py`` does; it counts
+under ``declined`` (why) and ``marked``.
+
 Prints and writes (``--json``): each landmark's error against the truth and its re-scan spread; each
 index's error against its true value and its re-scan change; the share of re-scans and progressions
 flagged beyond the MDC; the scans declined (not measurable) and why.
@@ -39,7 +44,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from analysis.indices import analyse_torso  # noqa: E402
+from analysis.indices import CORE_LANDMARKS, analyse_torso  # noqa: E402
 from analysis.profiles import cobb_estimate, sagittal_angles  # noqa: E402
 from analysis.repeatability import flatten, index_changes, mdc_from_index_pairs  # noqa: E402
 from analysis.synthetic import scan_surface  # noqa: E402
@@ -55,6 +60,7 @@ FIGURES = ("surface_rotation_deg.max", "surface_rotation_deg.rms", "lateral_devi
            "trunk_imbalance_mm", "trunk_length_mm", "asymmetry_mm", "kyphotic_angle_deg", "lordotic_angle_deg",
            "cobb_estimate_deg.max", "pelvic_obliquity_mm", "pelvic_torsion_deg")
 MDC_MIN_BODIES = 10
+CLICK_SIGMA_MM = 2.0  # a clinician's mark on the torso picture, 1-sigma per axis
 # the true Cobb angles: the simulated spine's frontal line smoothed over about a vertebra's height (the end
 # vertebrae's endplates average the line over one; unsmoothed, the simulator's line has 1-2 deg wiggles where
 # its two curves' shapes join, which no radiograph would call curves), read as the estimate reads its own line
@@ -124,13 +130,21 @@ def true_profiles(cfg, s) -> dict:
     return out
 
 
-def measure(subject, torso) -> dict:
+def measure(subject, torso, clicks: np.random.Generator) -> dict:
+    """One scan analysed as the clinic does: automatically, then, where the analysis asks for a trunk landmark
+    (VP, SP), again with it marked as a clinician would (the simulator's point plus a click's error)."""
     t0 = time.perf_counter()
     try:
         rep = analyse_torso(torso).report
     except ValueError as exc:
         return {"declined": f"failed: {exc}", "seconds": time.perf_counter() - t0}
-    out = {"seconds": time.perf_counter() - t0, "report": rep, "flat": flatten(rep)}
+    declined = (rep.get("not_measurable") or {}).get("reason")
+    mark = [n for n in (rep.get("not_measurable") or {}).get("mark", []) if n in CORE_LANDMARKS
+            and subject["landmarks"].get(n) is not None]
+    if mark:
+        marks = {n: (np.asarray(subject["landmarks"][n]) + clicks.normal(0, CLICK_SIGMA_MM, 3)).tolist() for n in mark}
+        rep = analyse_torso(torso, landmarks=marks).report
+    out = {"seconds": time.perf_counter() - t0, "report": rep, "flat": flatten(rep), "marked": sorted(mark)}
     post = subject["posture"].R @ np.array([0.0, 1.0, 0.0])
     out["facing_ok"] = bool(np.asarray(rep["frame"]["posterior"]) @ post > 0.7)
     out["facing_status"] = rep["frame"]["facing"]["status"]
@@ -139,8 +153,8 @@ def measure(subject, torso) -> dict:
                              and subject["landmarks"].get(k) is not None}
     out["landmark_confidence"] = {k: rep["landmarks"][k].get("confidence") for k in LANDMARK_KEYS}
     out["dimples_mm"] = subject["dimples_mm"]
-    if "not_measurable" in rep:
-        out["declined"] = rep["not_measurable"]["reason"]
+    if declined:  # what the analysis declined on its own, before any mark
+        out["declined"] = declined
     i = int(np.argmax(np.abs(subject["curve"]["rotation_deg"])))
     out["truth"] = {"surface_rotation_deg.max": float(subject["curve"]["rotation_deg"][i]),
                     **subject["true_profiles"]}
@@ -151,6 +165,9 @@ def measure(subject, torso) -> dict:
 
 def run_set(seed: int, n_bodies: int, n_points: int, log) -> list[dict]:
     rng = np.random.default_rng(seed)
+    # the clinician's clicks have their own stream, as in bench_rescans: the bodies drawn do not depend on
+    # which scans the analysis asked to be marked
+    clicks = np.random.default_rng([seed, 1])
     base = preset("paper")
     bodies = []
     for b in range(n_bodies):
@@ -159,7 +176,7 @@ def run_set(seed: int, n_bodies: int, n_points: int, log) -> list[dict]:
         rec = {"body": b, "draw": draw, "scans": {}}
         for name, (drot, dlat) in (("baseline", (0, 0)), ("rescan", (0, 0)), ("plus5", (5, 8)), ("plus10", (10, 16))):
             s, t = scan(cfg, draw["rotation_deg"] + drot, draw["lateral_mm"] + dlat, draw["top_mm"], rng, n_points)
-            rec["scans"][name] = measure(s, t)
+            rec["scans"][name] = measure(s, t, clicks)
         bodies.append(rec)
         sc = rec["scans"]
         log(f"  body {b:2d} ({'girl' if draw['girl'] else 'boy '}, {draw['subject']['stature_mm']:.0f} mm, "
@@ -168,7 +185,9 @@ def run_set(seed: int, n_bodies: int, n_points: int, log) -> list[dict]:
             + ", ".join(f"{k} {v['flat'].get('surface_rotation_deg.max', float('nan')):+.1f}" if "flat" in v
                         else f"{k} -" for k, v in sc.items())
             + ("; declined: " + "; ".join(sorted({v['declined'][:60] for v in sc.values() if 'declined' in v}))
-               if any('declined' in v for v in sc.values()) else ""))
+               if any('declined' in v for v in sc.values()) else "")
+            + ("; marked: " + ", ".join(f"{k} {'+'.join(v['marked'])}" for k, v in sc.items() if v.get("marked"))
+               if any(v.get("marked") for v in sc.values()) else ""))
     return bodies
 
 
@@ -198,6 +217,7 @@ def summarise(bodies, mdc) -> dict:
     declined = [s["declined"] for s in scans if "declined" in s]
     out["declined"] = len(declined)
     out["declined_reasons"] = sorted({d.split(":")[1].split("(")[0].strip() if ":" in d else d for d in declined})
+    out["marked"] = {k: sum(k in s.get("marked", ()) for s in scans) for k in CORE_LANDMARKS}
     lm = {}
     for k in LANDMARK_KEYS:
         err = [np.linalg.norm(s["landmark_error"][k]) for s in measured

@@ -44,14 +44,13 @@ from analysis.indices import CORE_LANDMARKS, analyse_torso  # noqa: E402
 from analysis.repeatability import (INDEX_FIGURES, flatten, index_changes,  # noqa: E402
                                     mdc_from_index_pairs, scanner_mdc_from)
 from analysis.torso import read_torso  # noqa: E402
-from bench_bodies import draw_body  # noqa: E402
+from bench_bodies import CLICK_SIGMA_MM, draw_body  # noqa: E402
 from recon_engine.formats import read_calibration, read_capture, read_rig  # noqa: E402
 from recon_engine.reconstruction import reconstruct_torso  # noqa: E402
 from recon_engine.results import write_torso  # noqa: E402
 from recon_engine.simulator.config import PRESETS, preset  # noqa: E402
 from recon_engine.simulator.scenario import simulate  # noqa: E402
 
-CLICK_SIGMA_MM = 2.0  # a clinician's mark on the torso picture, 1-sigma per axis
 
 
 def scenario_config(preset_name: str, seed: int, draw: dict, later_visit: bool):

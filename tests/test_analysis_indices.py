@@ -112,6 +112,18 @@ def test_a_section_with_an_arm_against_the_trunk_gives_no_rotation():
     assert np.isfinite(section_symmetry(Q, 0.0, Nn, min_agreement=0.7)[0])
 
 
+def test_a_section_seen_on_one_side_of_the_midline_gives_no_rotation():
+    from analysis.indices import section_symmetry
+
+    # the left half of a trunk's outline only (the run holding the midline cut at a hole beside it): mirrored
+    # and slid freely, it matches itself about its own axis, which is not the trunk's
+    th = np.linspace(0, 2 * np.pi, 300, endpoint=False)
+    Q = np.column_stack([130 + 110 * np.cos(th), 70 * np.sin(th)])
+    Nn = np.column_stack([np.cos(th) / 110, np.sin(th) / 70])
+    Nn /= np.linalg.norm(Nn, axis=1)[:, None]
+    assert np.isnan(section_symmetry(Q, -7.0, Nn, min_agreement=0.7)[0])
+
+
 def test_lateral_deviation_signed_right():
     a, truth = _run(lateral_mm=10.0)
     rep = a.report
