@@ -216,23 +216,22 @@ def detect_posterior(points: np.ndarray, facing: str | None = None, prior: dict 
     else:
         shape_sign, shape_status = 1.0, "uncertain"
         why = "the torso's shape does not tell the back from the front"
-    if prior is not None and prior.get("source") == "clinician" and prior.get("posterior") is not None:
-        p = np.array([prior["posterior"][0], prior["posterior"][1], 0.0], float)
-        if abs(p @ depth) < np.cos(np.radians(45.0)) * np.linalg.norm(p):
-            # a mark beside the trunk's depth axis tells neither end from the other, and must not turn the frame:
-            # a vertebra prominens marked just above a scan cut at C7 once turned it by 90 deg
-            prior = None
     if prior is not None and prior.get("posterior") is not None:
         p = np.array([prior["posterior"][0], prior["posterior"][1], 0.0], float)
         p /= np.linalg.norm(p)
         sign = 1.0 if p @ depth >= 0 else -1.0
-        post = sign * depth if abs(p @ depth) >= np.cos(np.radians(45.0)) else p
-        arms = ", ".join(prior.get("back_towards") or []) or "the rig's back"
+        along = abs(p @ depth) >= np.cos(np.radians(45.0))
         if prior.get("source") == "clinician":
-            # the clinician marked the vertebra prominens on the back: that settles which end is the back (the
-            # depth axis itself is the shape's)
-            return sign * depth, {"method": "clinician", "status": "certain", "cues": cues,
-                          "shape_agrees": bool(shape_sign == sign) if shape_status == "certain" else None}
+            # the clinician marked the vertebra prominens on the back: that settles which end of the shape's depth
+            # axis is the back. A mark beside that axis tells neither end and must not turn the frame (a VP
+            # marked just above a scan cut at C7 once turned it by 88 deg): the shape decides then
+            if along:
+                return sign * depth, {"method": "clinician", "status": "certain", "cues": cues,
+                                      "shape_agrees": bool(shape_sign == sign) if shape_status == "certain" else None}
+            prior = None
+    if prior is not None and prior.get("posterior") is not None:
+        post = sign * depth if along else p
+        arms = ", ".join(prior.get("back_towards") or []) or "the rig's back"
         info = {"method": "rig", "back_towards": prior.get("back_towards") or [], "status": "certain",
                 "shape_agrees": bool(shape_sign == sign) if shape_status == "certain" else None, "cues": cues}
         # only both shape cues together overrule the footplate: on a sparse or holed scan one cue alone can

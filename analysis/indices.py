@@ -482,15 +482,15 @@ def _clinician_facing(torso: Torso, landmarks: dict | None) -> dict | None:
     vp = (landmarks or {}).get("vertebra_prominens")
     if vp is None:
         return None
-    from .torso import axis_points
-
     vp = np.asarray(vp, float).reshape(3)
     # the trunk's axis through the shoulders, the 150 mm below the mark: at the mark's own height a scan cut at
-    # C7 has only a few shoulder-top points, whose middle can lie beside the neck
+    # C7 has only a few shoulder-top points, whose middle can lie beside the neck. A mark with hardly any
+    # surface below it (far above the scan) says nothing of the facing
     z = torso.points[:, 2]
     band = (z >= vp[2] - 150.0) & (z <= vp[2])
-    axis = np.median(torso.points[band, :2], axis=0) if band.sum() >= 200 else \
-        axis_points(torso.points, np.array([vp[2]]))[0]
+    if band.sum() < 200:
+        return None
+    axis = np.median(torso.points[band, :2], axis=0)
     v = np.array([vp[0] - axis[0], vp[1] - axis[1], 0.0])
     if np.linalg.norm(v) < 20.0:  # on the axis: says nothing of the facing
         return None

@@ -52,7 +52,6 @@ from recon_engine.simulator.config import PRESETS, preset  # noqa: E402
 from recon_engine.simulator.scenario import simulate  # noqa: E402
 
 
-
 def scenario_config(preset_name: str, seed: int, draw: dict, later_visit: bool):
     """The simulator's scenario for one drawn body: a baseline and its same-day re-scan (and a later visit)."""
     base = preset(preset_name, seed=seed)

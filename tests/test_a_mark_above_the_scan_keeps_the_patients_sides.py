@@ -1,6 +1,6 @@
 """A clinician's vertebra prominens marked at or just above the top of a scan cut at C7 must not turn the
 patient frame: once the trunk's axis read at the mark's own height (a few shoulder-top points) lay beside
-the neck, and the frame turned by 90 deg."""
+the neck, and the frame turned by 88 deg."""
 
 import numpy as np
 import pytest
@@ -20,21 +20,6 @@ def cut_at_c7():
     z = V[body.triangles].mean(axis=1)[:, 2]
     region = (z > body.z_sacrum - 60) & (z < body.z_c7 + 2)
     return scan_surface(V, body.triangles, region, n_points=30_000, seed=3), R @ np.array([0.0, 1.0, 0.0])
-
-
-@pytest.mark.parametrize("above_mm", [-3.0, 4.0, 10.0])
-def test_it_keeps_the_frame_when_vp_is_marked_at_the_top_of_the_scan(cut_at_c7, above_mm):
-    torso, truth = cut_at_c7
-    auto = analyse_torso(torso).report
-    # the neck is not seen and the clinician corrects VP: a click on the back's midline at the top of the scan
-    # (the automatic point's x and depth)
-    mark = np.asarray(auto["landmarks"]["vertebra_prominens"]["position_mm"], float)
-    mark[2] = torso.points[:, 2].max() + above_mm
-    rep = analyse_torso(torso, landmarks={"vertebra_prominens": mark.tolist()}).report
-    assert rep["frame"]["facing"]["method"] == "clinician"
-    assert np.asarray(rep["frame"]["posterior"]) @ truth > 0.98
-    # the right back comes backwards (positive surface rotation), as on the scan analysed without the mark
-    assert rep["surface_rotation_deg"]["max"] > 2
 
 
 def test_a_mark_beside_the_depth_axis_does_not_turn_the_frame(cut_at_c7):
