@@ -77,7 +77,7 @@ class IndicesConfig:
     # below 0.6 by 1.9-4.4 deg
     section_min_agreement: float = 0.7
     hump_range_mm: tuple = (20.0, 100.0)  # distances from the symmetry line where the hump is measured
-    yaw_band: float = 0.12  # the patient's yaw: mirror plane of the trunk within this fraction of SP and below VP
+    yaw_band: float = 0.12  # the patient's yaw: mirror plane of the trunk within this fraction (of SP-VP) of SP
     mirror_band: float = 0.0  # asymmetry: trunk between SP and VP, extended by this fraction either end
     regions: tuple = (("lumbar", 0.0, 0.4), ("thoracolumbar", 0.4, 0.6), ("thoracic", 0.6, 1.0))  # SP=0, VP=1
 

@@ -30,7 +30,7 @@ import numpy as np
 from .backsurface import DepthMap, back_points, central_extent, depth_map, prominence_difference, slope_at
 from .config import AnalysisConfig, IndicesConfig, RigidConfig
 from .frame import PatientFrame, detect_posterior, frame_from_posterior, symmetry_plane
-from .landmarks import broad_slope, detect_landmarks, find_dimples, midline_profile, sagittal_inclination
+from .landmarks import broad_slope, detect_landmarks, find_dimples, sagittal_inclination
 from .profiles import cobb_estimate, pelvic_figures, sagittal_angles
 from .torso import PlaneIndex, Torso
 
@@ -193,14 +193,14 @@ def section_symmetry(Q: np.ndarray, x0: float, normals: np.ndarray | None = None
     return (float(-phi / 2) if agreement >= min_agreement else float("nan")), agreement
 
 
-def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: dict | None = None) -> TorsoAnalysis:
-    """Indices of one torso (rig frame, +Z up) with the frame, depth map, landmarks and asymmetry map.
+def initial_frame(torso: Torso, ic: IndicesConfig, landmarks: dict | None = None) -> dict:
+    """The patient frame before the yaw is refined, and the landmarks found in it.
 
-    ``landmarks``: optional clinician corrections, ``{"vertebra_prominens": [x, y, z],
-    "sacral_point": [x, y, z]}`` in the torso's (rig) frame, mm; either may be left out.
+    The facing from the shape (a clinician's mark or the rig only choosing which end of its depth axis is the
+    back), the yaw and origin across from the whole torso's mirror plane. Returns ``{"ic" (the config with
+    cells and smoothing grown for a sparse cloud), "frame", "P", "N" (points and normals, patient frame, mm),
+    "dmap", "back", "auto" (landmarks found), "facing", "rc", "index"}``.
     """
-    cfg = cfg or AnalysisConfig()
-    ic = cfg.indices
     from .torso import spacings
 
     # clustered samples (a sparse reconstruction's features bunch on the pattern's blobs) are sparser than
@@ -229,27 +229,56 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
     P, N = frame.to_patient(torso.points), frame.rotate(torso.normals)
     dmap = depth_map(P, N, ic)
     back = back_points(P, N, ic)
-    auto = detect_landmarks(P, back, dmap, ic)
-    # the yaw again, from the trunk's ends only (pelvis at SP, shoulders at VP): a scoliotic curve turns the
-    # sections between them and would tilt a whole-trunk mirror plane towards its own rotation
+    return {"ic": ic, "frame": frame, "P": P, "N": N, "dmap": dmap, "back": back,
+            "auto": detect_landmarks(P, back, dmap, ic), "facing": facing, "rc": rc, "index": index}
+
+
+def band_yaw_frame(torso: Torso, start: dict, bands, max_turn_deg: float = 10.0):
+    """The patient frame with its yaw from the mirror plane of the trunk within height bands (``[(z_lo, z_hi),
+    ...]``, patient frame, mm; arms cut off), starting from :func:`initial_frame`'s ``start``; None where the
+    bands hold 500 points or fewer, the registration fails, or the plane turns by more than ``max_turn_deg``
+    from the start's."""
+    band = np.zeros(len(start["P"]), bool)
+    for z_lo, z_hi in bands:
+        band |= trunk_mask(start["P"], z_lo, z_hi, start["ic"])
+    if band.sum() <= 500:
+        return None
+    try:
+        f = symmetry_plane(torso, start["frame"], start["rc"], mask=band, index=start["index"])["frame"]
+    except ValueError:
+        return None
+    if np.degrees(np.arccos(np.clip(f.R[1] @ start["frame"].R[1], -1, 1))) >= max_turn_deg:
+        return None
+    f.origin[2] = 0.0
+    return f
+
+
+def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: dict | None = None) -> TorsoAnalysis:
+    """Indices of one torso (rig frame, +Z up) with the frame, depth map, landmarks and asymmetry map.
+
+    ``landmarks``: optional clinician corrections, ``{"vertebra_prominens": [x, y, z],
+    "sacral_point": [x, y, z]}`` in the torso's (rig) frame, mm; either may be left out.
+    """
+    cfg = cfg or AnalysisConfig()
+    start = initial_frame(torso, cfg.indices, landmarks)
+    ic, facing, frame, P, N, rc = (start[k] for k in ("ic", "facing", "frame", "P", "N", "rc"))
+    dmap, back, auto = start["dmap"], start["back"], start["auto"]
+    # the yaw again, from the pelvis only (the trunk around SP): a scoliotic curve turns the sections above it
+    # and would tilt a whole-trunk mirror plane towards its own rotation. The shoulders are no reference either:
+    # the band below VP carries the upper thoracic curve's rotation (it read the yaw 1.0-2.7 deg off the
+    # pelvis's on tuning seed 100's rendered re-scans) and moves with VP's height (0.3-0.7 deg for 12 mm); the
+    # pelvis band read the simulated pelvis's yaw within 0.05 deg and moved by at most 0.4 deg for an SP 12 mm
+    # higher or lower (benchmarks/bench_yaw.py)
     z_sp, z_vp = auto["sacral_point"][2], auto["vertebra_prominens"][2]
     if np.isfinite(z_sp) and np.isfinite(z_vp) and z_vp > z_sp + 100:
         L = z_vp - z_sp
-        ends = trunk_mask(P, z_sp - ic.yaw_band * L, z_sp + ic.yaw_band * L, ic) | \
-            trunk_mask(P, z_vp - ic.yaw_band * L, z_vp, ic)
-        if ends.sum() > 500:
-            try:
-                sym2 = symmetry_plane(torso, frame, rc, mask=ends, index=index)
-                f2 = sym2["frame"]
-                if np.degrees(np.arccos(np.clip(f2.R[1] @ frame.R[1], -1, 1))) < 10:
-                    frame = f2
-                    frame.origin[2] = 0.0
-                    P, N = frame.to_patient(torso.points), frame.rotate(torso.normals)
-                    dmap = depth_map(P, N, ic)
-                    back = back_points(P, N, ic)
-                    auto = detect_landmarks(P, back, dmap, ic)
-            except ValueError:
-                pass
+        f2 = band_yaw_frame(torso, start, [(z_sp - ic.yaw_band * L, z_sp + ic.yaw_band * L)])
+        if f2 is not None:
+            frame = f2
+            P, N = frame.to_patient(torso.points), frame.rotate(torso.normals)
+            dmap = depth_map(P, N, ic)
+            back = back_points(P, N, ic)
+            auto = detect_landmarks(P, back, dmap, ic)
     for k in landmarks or {}:
         if k not in LANDMARKS:
             raise ValueError(f"unknown landmark {k!r}: choose from {', '.join(LANDMARKS)}")
