@@ -60,11 +60,25 @@ def test_an_uncertain_facing_withholds_every_sided_index(body):
     assert rep["trunk_length_mm"] > 300  # what does not depend on the sides is still measured
 
 
+def marked_as_asked(body, torso, posterior):
+    """The report, with the sacral point marked as a clinician would where the analysis asks for it: the
+    back's most posterior skin point at the sacrum's height, within 20 mm of the back's middle."""
+    rep = analyse_torso(torso).report
+    if "sacral_point" not in (rep.get("not_measurable") or {}).get("mark", []):
+        return rep
+    P = torso.points[np.abs(torso.points[:, 2] - body.z_sacrum) < 4.0]
+    across = np.cross([0.0, 0.0, 1.0], posterior) @ P.T
+    P = P[np.abs(across - np.median(across)) < 20.0]
+    return analyse_torso(torso, landmarks={"sacral_point": P[np.argmax(P @ posterior)].tolist()}).report
+
+
 def test_same_day_rescans_keep_the_patients_sides(body):
-    # the re-scan is cut differently (the neck and chin in view) and sampled anew: the sides must not swap
+    # the re-scan is cut differently (the neck and chin in view) and sampled anew: the sides must not swap.
+    # The "torso" crop stops 30 mm below the sacrum, where the midline's sacral crest stands about 3 mm out
+    # (SP_MIN_RISE_MM): with the pelvis's yaw it is not found and the page asks for it, as it would a clinician
     a, truth = scan(body, 15.0, "torso", seed=1, rotation_deg=8.0)
     b, _ = scan(body, 15.0, "hips-to-chin", seed=2, rotation_deg=8.0)
-    ra, rb = analyse_torso(a).report, analyse_torso(b).report
+    ra, rb = (marked_as_asked(body, t, truth) for t in (a, b))
     for rep in (ra, rb):
         assert rep["frame"]["facing"]["status"] == "certain"
         assert np.asarray(rep["frame"]["posterior"]) @ truth > 0.95
