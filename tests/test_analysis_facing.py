@@ -74,8 +74,9 @@ def marked_as_asked(body, torso, posterior):
 
 def test_same_day_rescans_keep_the_patients_sides(body):
     # the re-scan is cut differently (the neck and chin in view) and sampled anew: the sides must not swap.
-    # The "torso" crop stops 30 mm below the sacrum, where the midline's sacral crest stands about 3 mm out
-    # (SP_MIN_RISE_MM): with the pelvis's yaw it is not found and the page asks for it, as it would a clinician
+    # The "torso" crop stops 30 mm below the sacrum. In the frame with the pelvis's yaw the midline's depth
+    # falls from the crop's lowest row (no sacral crest; in the frame 0.7 deg off, a 20 mm plateau was one),
+    # so the analysis asks for SP, and it is marked as a clinician would
     a, truth = scan(body, 15.0, "torso", seed=1, rotation_deg=8.0)
     b, _ = scan(body, 15.0, "hips-to-chin", seed=2, rotation_deg=8.0)
     ra, rb = (marked_as_asked(body, t, truth) for t in (a, b))
