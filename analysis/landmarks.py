@@ -6,10 +6,10 @@ Both are found in the patient frame (x left, y posterior, z up) from the shape:
   the trunk narrows from the shoulders into the neck: the lowest height above
   the widest level where the trunk's width falls below ``neck_width_ratio`` of
   the shoulders'; then, when the back's midline is seen above it, refined to
-  the neck's flank: the centre of a step fitted to the midline between the
-  thoracic kyphosis's crest and the neck's hollow (:func:`find_vp_crossing`);
-  when the surface stops below the neck, the top of the back (low
-  confidence).
+  the neck's flank: where the midline, between the thoracic kyphosis's crest
+  and the neck's hollow, crosses half their depth difference
+  (:func:`find_vp_crossing`); when the surface stops below the neck, the top
+  of the back (low confidence).
 - SP, the sacral point (top of the gluteal cleft, S1–S2), is the most
   posterior point of the back's line of symmetry below the lumbar lordosis:
   the midline profile's deepest point in the lower 60 % of the back, then the
@@ -113,22 +113,15 @@ def find_vp_height(P: np.ndarray, back_mask: np.ndarray, cfg: IndicesConfig) -> 
     return z_top, "top of the back"
 
 
-def find_vp_crossing(zs: np.ndarray, depth: np.ndarray, z_neck: float) -> tuple[float, float, float, float] | None:
-    """VP on the midline profile: the middle of the neck's flank, where the back rises from the neck's hollow
-    to the thoracic kyphosis's crest. Returns ``(height mm, drop mm, misfit mm, upper)`` or None.
+def find_vp_crossing(zs: np.ndarray, depth: np.ndarray, z_neck: float) -> tuple[float, float] | None:
+    """VP on the midline profile: where the back, coming down from the neck's hollow, has climbed half way to
+    the thoracic kyphosis's crest. Returns ``(height mm, drop mm)`` or None.
 
     The crest is the most posterior midline point within 200 mm below (and 20 mm above) the neck level
-    ``z_neck``; the hollow the most anterior one within 220 mm above the crest. Between them the profile is
-    fitted with one step, ``depth = m - a tanh((z - z0) / s)`` (robust loss), and VP is its centre ``z0``.
-    The whole flank fixes ``z0``: the steepest point alone (the flank is nearly straight over 60-80 mm) moved
-    by up to 18 mm between same-day re-scans, and the height where the smoothed profile crossed half the
-    crest-to-hollow depth moved by up to 6 mm, as a few noisy samples or a hole in a sparse reconstruction's
-    flank shifted the crossing (rendered demo re-scans, tuning seed 100: spread at most 3.8 mm with the fit).
-    ``drop`` (crest minus hollow) is the evidence: a few mm of it is no neck at all. ``misfit`` is the fit's
-    RMS residual: hair over the neck adds a second step above VP, one step then fits badly, and its centre
-    moved by 74 mm between two same-day re-scans. ``upper`` is how much of the step's upper half the profile
-    shows, in step widths ``s`` from its centre to the hollow: below about 1 the scan stops on the flank, the
-    "hollow" is only its top edge and the centre is a guess.
+    ``z_neck``; the hollow the most anterior one within 220 mm above the crest. The half-depth level is
+    crossed where the profile is steep, so its height is fixed to a few mm by the whole flank; the steepest
+    point alone (the flank is nearly straight over 60-80 mm) moved by up to 18 mm between same-day re-scans.
+    ``drop`` (crest minus hollow) is the evidence: a few mm of it is no neck at all.
     """
     d = _smooth(depth, 2)
     ok = np.isfinite(d)
@@ -143,27 +136,15 @@ def find_vp_crossing(zs: np.ndarray, depth: np.ndarray, z_neck: float) -> tuple[
     if hollow_win.sum() < 5:
         return None
     k_h = np.nonzero(hollow_win)[0][int(np.argmin(d[hollow_win]))]
-    z_c, z_h, drop = float(z[k_c]), float(z[k_h]), float(d[k_c] - d[k_h])
+    drop = float(d[k_c] - d[k_h])
     if drop <= 0:
         return None
-    # the raw samples (not the smoothed ones: the fit is the smoothing)
-    flank = np.isfinite(depth) & (zs >= z_c) & (zs <= z_h)
-    if flank.sum() < 6:
-        return None
-    zf, df = zs[flank], depth[flank]
-    from scipy.optimize import least_squares
-
-    def misfit(p):
-        return p[0] - p[1] * np.tanh((zf - p[2]) / p[3]) - df
-
-    start = [d[k_h] + 0.5 * drop, 0.5 * drop, 0.5 * (z_c + z_h), max(0.25 * (z_h - z_c), 5.0)]
-    lower = [-np.inf, 0.0, z_c, 2.0]
-    upper = [np.inf, 2.0 * drop, z_h, max(z_h - z_c, 2.5)]
-    fit = least_squares(misfit, np.clip(start, lower, upper), bounds=(lower, upper), loss="soft_l1", f_scale=1.0)
-    z0 = float(fit.x[2])
-    if not (z_c < z0 < z_h) or not fit.success:
-        return None
-    return z0, drop, float(np.sqrt(np.mean(misfit(fit.x) ** 2))), float((z_h - z0) / fit.x[3])
+    level = d[k_c] - 0.5 * drop
+    flank = np.arange(k_c, k_h + 1)
+    below = flank[d[flank] < level]
+    k = int(below[0])
+    f = (d[k - 1] - level) / max(d[k - 1] - d[k], 1e-9)
+    return float(z[k - 1] + f * (z[k] - z[k - 1])), drop
 
 
 def find_sp_height(zs: np.ndarray, depth: np.ndarray, z_vp: float) -> tuple[float, str, float]:
@@ -199,15 +180,6 @@ def find_sp_height(zs: np.ndarray, depth: np.ndarray, z_vp: float) -> tuple[floa
 # the evidence a landmark needs to be trusted without a clinician: the neck's hollow this far in front of the
 # kyphosis's crest, the sacral prominence this far behind the lordosis (mm)
 VP_MIN_DROP_MM = 10.0
-# and the neck's flank one step: the step's RMS misfit at most this fraction of the drop. On the rendered demo
-# re-scans of tuning seed 100 a bare neck's misfit was 0.5-1.6 % of the drop, a neck under 15 mm of hair
-# 1.8-2.8 % (its VP still within 4 mm between re-scans), under 24 mm of hair 5.4-5.9 % (74 mm apart)
-VP_MAX_STEP_MISFIT = 0.04
-# and the flank's upper half seen: the hollow at least this many step widths above the step's centre. On the
-# true-surface scans of tuning seed 100 a neck seen to 50 mm or more above C7 showed 1.34-1.51, a scan whose top
-# was 10 mm above C7 0.49-0.60, its VP 12-17 mm low and 4 mm apart between re-scans (held out: a scan stopping
-# 7 mm below C7 read 0.29 and 0.64, and its VP moved by 5 mm)
-VP_MIN_UPPER_FLANK = 1.0
 SP_MIN_RISE_MM = 3.0
 
 
@@ -224,14 +196,8 @@ def detect_landmarks(P: np.ndarray, back_mask: np.ndarray, dmap: DepthMap, cfg: 
     if how_vp == "neck":
         found = find_vp_crossing(zs, ds, z_vp)
         if found is not None:
-            z_c, vp_evidence, misfit, upper_seen = found
-            if vp_evidence < VP_MIN_DROP_MM:
-                pass
-            elif misfit > VP_MAX_STEP_MISFIT * vp_evidence:
-                how_vp = "neck (its flank is not one step: hair over the neck?)"
-            elif upper_seen < VP_MIN_UPPER_FLANK:
-                how_vp = "neck (the scan stops on its flank: the neck above VP is not seen)"
-            else:
+            z_c, vp_evidence = found
+            if vp_evidence >= VP_MIN_DROP_MM:
                 z_vp, how_vp, vp_conf = z_c, "neck flank", "high"
     seen = zs[np.isfinite(ds)]
     if len(seen) and z_vp > seen.max():
@@ -247,53 +213,24 @@ def detect_landmarks(P: np.ndarray, back_mask: np.ndarray, dmap: DepthMap, cfg: 
 
 
 def point_on_midline(dmap: DepthMap, z: float, xs=None, zs=None, cfg=None, below=False, x_hint=None) -> np.ndarray:
-    """The back's surface point on the symmetry line at height ``z`` (patient frame, mm).
+    """The back's surface point on the symmetry line at height ``z`` (patient frame).
 
-    x: the symmetry line smoothed along the height (Gaussian, ``cfg.line_smooth_mm``), read 10 mm lower
-    with ``below`` (the neck's own shape above VP is not the back's); the raw line's few-mm wander near the
-    top of a sparse back moved VP across by up to 5 mm between same-day re-scans. The depth is read at ``z``
-    itself, through a hole by a plane fitted to the cells around it (:func:`depth_near`): before, a hole
-    sent the read 20 mm down the neck's steep flank and VP 13 mm back between two same-day re-scans.
+    With ``below`` the symmetry point is taken 10 mm lower (the neck's own
+    shape above VP is not the back's).
     """
     zq = z - 10.0 if below else z
     if x_hint is not None:
         x0 = x_hint
     elif xs is not None and np.isfinite(xs).any():
         ok = np.isfinite(xs)
-        mz, mx = zs[ok], xs[ok]
-        sigma = cfg.line_smooth_mm if cfg is not None else 8.0
-        w = np.exp(-0.5 * ((zq - mz) / sigma) ** 2)
-        x0 = float(w @ mx / w.sum()) if w.sum() > 1e-6 else float(np.interp(zq, mz, mx))
+        x0 = float(np.interp(zq, zs[ok], xs[ok]))
     else:
         x0 = 0.0
-    y = depth_near(dmap, x0, z)
-    for dz in (20.0, 30.0, 40.0):  # no skin within 24 mm: the nearest seen below
+    for dz in (0.0, z - zq, 20.0, 30.0, 40.0):
+        y = dmap.at(x0, z - dz)
         if np.isfinite(y):
             break
-        y = dmap.at(x0, z - dz)
     return np.array([x0, y, z])
-
-
-def depth_near(dmap: DepthMap, x: float, z: float, radii=(6.0, 12.0, 24.0), min_cells: int = 8) -> float:
-    """The back's depth (mm) at ``(x, z)`` (patient frame): the map's own value, or where it has a hole the
-    value at ``(x, z)`` of a plane fitted (Gaussian weights) to the seen cells within the smallest radius (mm)
-    that holds ``min_cells`` spread over at least half the radius in height; NaN when none does."""
-    y = dmap.at(x, z)
-    if np.isfinite(y):
-        return y
-    step = float(dmap.x[1] - dmap.x[0])
-    ix, iz = int(np.searchsorted(dmap.x, x)), int(np.searchsorted(dmap.z, z))
-    for r in radii:
-        n = int(np.ceil(r / step)) + 1
-        rows, cols = slice(max(0, iz - n), iz + n + 1), slice(max(0, ix - n), ix + n + 1)
-        dx, dz = np.meshgrid(dmap.x[cols] - x, dmap.z[rows] - z)
-        D = dmap.depth[rows, cols]
-        ok = np.isfinite(D) & (dx ** 2 + dz ** 2 <= r * r)
-        if ok.sum() >= min_cells and np.ptp(dz[ok]) >= 0.5 * r:
-            sw = np.exp(-0.25 * (dx[ok] ** 2 + dz[ok] ** 2) / (0.5 * r) ** 2)  # square root of the weights
-            A = np.stack([np.ones(ok.sum()), dx[ok], dz[ok]], axis=1) * sw[:, None]
-            return float(np.linalg.lstsq(A, D[ok] * sw, rcond=None)[0][0])
-    return np.nan
 
 
 # the lumbar dimples: cup-shaped hollows standing out from the back's curvature by this much (the smaller
