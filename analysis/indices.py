@@ -226,11 +226,16 @@ def initial_frame(torso: Torso, ic: IndicesConfig, landmarks: dict | None = None
     except ValueError:
         frame = frame0
     frame.origin[2] = 0.0
+    return {"ic": ic, "frame": frame, **seen_in_frame(torso, frame, ic), "facing": facing, "rc": rc, "index": index}
+
+
+def seen_in_frame(torso: Torso, frame: PatientFrame, ic: IndicesConfig) -> dict:
+    """What the analysis reads in one patient frame: ``{"P", "N"}`` (points and normals, patient frame, mm),
+    ``"dmap"`` (the back's depth map), ``"back"`` (the back's points, bool) and ``"auto"`` (landmarks found)."""
     P, N = frame.to_patient(torso.points), frame.rotate(torso.normals)
     dmap = depth_map(P, N, ic)
     back = back_points(P, N, ic)
-    return {"ic": ic, "frame": frame, "P": P, "N": N, "dmap": dmap, "back": back,
-            "auto": detect_landmarks(P, back, dmap, ic), "facing": facing, "rc": rc, "index": index}
+    return {"P": P, "N": N, "dmap": dmap, "back": back, "auto": detect_landmarks(P, back, dmap, ic)}
 
 
 def band_yaw_frame(torso: Torso, start: dict, bands, max_turn_deg: float = 10.0):
@@ -265,20 +270,18 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
     dmap, back, auto = start["dmap"], start["back"], start["auto"]
     # the yaw again, from the pelvis only (the trunk around SP): a scoliotic curve turns the sections above it
     # and would tilt a whole-trunk mirror plane towards its own rotation. The shoulders are no reference either:
-    # the band below VP carries the upper thoracic curve's rotation (it read the yaw 1.0-2.7 deg off the
-    # pelvis's on tuning seed 100's rendered re-scans) and moves with VP's height (0.3-0.7 deg for 12 mm); the
-    # pelvis band read the simulated pelvis's yaw within 0.05 deg and moved by at most 0.4 deg for an SP 12 mm
-    # higher or lower (benchmarks/bench_yaw.py)
+    # the band below VP carries the upper thoracic curve's rotation (it read the yaw 1.7 deg off the pelvis's
+    # on average, 2.8 at most, on tuning seed 100's rendered re-scans) and moves with VP's height (up to 0.7
+    # deg for 12 mm); the pelvis band read the simulated pelvis's yaw within 0.05 deg and moved by at most
+    # 0.4 deg for SP moved by ±12 mm (benchmarks/bench_yaw.py)
     z_sp, z_vp = auto["sacral_point"][2], auto["vertebra_prominens"][2]
     if np.isfinite(z_sp) and np.isfinite(z_vp) and z_vp > z_sp + 100:
         L = z_vp - z_sp
         f2 = band_yaw_frame(torso, start, [(z_sp - ic.yaw_band * L, z_sp + ic.yaw_band * L)])
         if f2 is not None:
             frame = f2
-            P, N = frame.to_patient(torso.points), frame.rotate(torso.normals)
-            dmap = depth_map(P, N, ic)
-            back = back_points(P, N, ic)
-            auto = detect_landmarks(P, back, dmap, ic)
+            seen = seen_in_frame(torso, frame, ic)
+            P, N, dmap, back, auto = (seen[k] for k in ("P", "N", "dmap", "back", "auto"))
     for k in landmarks or {}:
         if k not in LANDMARKS:
             raise ValueError(f"unknown landmark {k!r}: choose from {', '.join(LANDMARKS)}")

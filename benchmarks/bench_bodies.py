@@ -163,21 +163,34 @@ def measure(subject, torso, clicks: np.random.Generator) -> dict:
     return out
 
 
-def run_set(seed: int, n_bodies: int, n_points: int, log) -> list[dict]:
+VISITS = (("baseline", (0, 0)), ("rescan", (0, 0)), ("plus5", (5, 8)), ("plus10", (10, 16)))  # +deg, +mm at the apex
+
+
+def draw_scans(seed: int, n_bodies: int, n_points: int):
+    """Each body of the family and its four scans (``VISITS``), in the order the seed's random stream draws
+    them: yields ``(body, draw, visit, posed subject, torso)``."""
     rng = np.random.default_rng(seed)
-    # the clinician's clicks have their own stream, as in bench_rescans: the bodies drawn do not depend on
-    # which scans the analysis asked to be marked
-    clicks = np.random.default_rng([seed, 1])
     base = preset("paper")
-    bodies = []
     for b in range(n_bodies):
         draw = draw_body(rng)
         cfg = replace(base, subject=replace(base.subject, **draw["subject"]))
-        rec = {"body": b, "draw": draw, "scans": {}}
-        for name, (drot, dlat) in (("baseline", (0, 0)), ("rescan", (0, 0)), ("plus5", (5, 8)), ("plus10", (10, 16))):
+        for name, (drot, dlat) in VISITS:
             s, t = scan(cfg, draw["rotation_deg"] + drot, draw["lateral_mm"] + dlat, draw["top_mm"], rng, n_points)
-            rec["scans"][name] = measure(s, t, clicks)
-        bodies.append(rec)
+            yield b, draw, name, s, t
+
+
+def run_set(seed: int, n_bodies: int, n_points: int, log) -> list[dict]:
+    # the clinician's clicks have their own stream, as in bench_rescans: the bodies drawn do not depend on
+    # which scans the analysis asked to be marked
+    clicks = np.random.default_rng([seed, 1])
+    bodies = []
+    for b, draw, name, s, t in draw_scans(seed, n_bodies, n_points):
+        if name == VISITS[0][0]:
+            bodies.append({"body": b, "draw": draw, "scans": {}})
+        rec = bodies[-1]
+        rec["scans"][name] = measure(s, t, clicks)
+        if name != VISITS[-1][0]:
+            continue
         sc = rec["scans"]
         log(f"  body {b:2d} ({'girl' if draw['girl'] else 'boy '}, {draw['subject']['stature_mm']:.0f} mm, "
             f"w {draw['subject']['build_width']:.2f} d {draw['subject']['build_depth']:.2f}, "

@@ -35,7 +35,6 @@ import platform
 import subprocess
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -47,8 +46,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from analysis.config import IndicesConfig  # noqa: E402
 from analysis.indices import band_yaw_frame, initial_frame  # noqa: E402
 from analysis.torso import read_torso  # noqa: E402
-from bench_bodies import draw_body, scan  # noqa: E402
-from recon_engine.simulator.config import preset  # noqa: E402
+from bench_bodies import draw_scans  # noqa: E402
 
 BANDS = ("pelvis", "ends", "shoulders", "whole")
 VP_SHIFTS_MM = (-6.0, 0.0, 6.0)
@@ -90,15 +88,9 @@ def measure_scan(torso, true_yaw: float, ic: IndicesConfig) -> dict:
 
 def true_surface_scans(seed: int, n_bodies: int, n_points: int):
     """Baseline and same-day re-scan of each body, drawn exactly as bench_bodies.run_set draws them."""
-    rng = np.random.default_rng(seed)
-    base = preset("paper")
-    for b in range(n_bodies):
-        draw = draw_body(rng)
-        cfg = replace(base, subject=replace(base.subject, **draw["subject"]))
-        for name, (drot, dlat) in (("baseline", (0, 0)), ("rescan", (0, 0)), ("plus5", (5, 8)), ("plus10", (10, 16))):
-            s, t = scan(cfg, draw["rotation_deg"] + drot, draw["lateral_mm"] + dlat, draw["top_mm"], rng, n_points)
-            if name in ("baseline", "rescan"):  # the later visits are drawn only to keep the random stream
-                yield b, name, t, yaw_deg(s["posture"].R @ np.array([0.0, 1.0, 0.0]))
+    for b, _, name, s, t in draw_scans(seed, n_bodies, n_points):
+        if name in ("baseline", "rescan"):  # the later visits are drawn only to keep the random stream
+            yield b, name, t, yaw_deg(s["posture"].R @ np.array([0.0, 1.0, 0.0]))
 
 
 def rendered_scans(root: Path, which: str):

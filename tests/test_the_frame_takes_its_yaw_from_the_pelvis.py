@@ -2,8 +2,8 @@
 
 Every section's surface rotation is read against the frame's posterior direction. The frame took its yaw from
 the trunk's two ends, and the band below the vertebra prominens carries the upper thoracic curve's rotation:
-on this body it turned the frame by 0.7 deg, and every rotation with it (on the rendered re-scans of
-``benchmarks/bench_yaw.py``, 1.0-2.7 deg, moving with VP's height).
+on this body it turned the frame by 0.7 deg, and every rotation with it (on the held-out rendered re-scans of
+``benchmarks/bench_yaw.py``, by up to 1.4 deg, moving with VP's height).
 """
 
 import numpy as np
