@@ -106,6 +106,19 @@ def _sides(sections, key):
     return out
 
 
+def smooth_along(z: np.ndarray, v: np.ndarray, sigma_mm: float) -> np.ndarray:
+    """``v`` (one value per height ``z``, mm) smoothed by a Gaussian of ``sigma_mm`` along the height; a NaN value
+    stays NaN and takes no part in its neighbours'. ``sigma_mm`` <= 0 returns a copy."""
+    z, v = np.asarray(z, float), np.array(v, float)
+    ok = np.isfinite(v)
+    if sigma_mm <= 0 or not ok.any():
+        return v
+    w = np.exp(-0.5 * ((z[:, None] - z[None, ok]) / sigma_mm) ** 2)
+    out = np.full_like(v, np.nan)
+    out[ok] = (w[ok] @ v[ok]) / w[ok].sum(axis=1)
+    return out
+
+
 def trunk_mask(P: np.ndarray, z_lo: float, z_hi: float, cfg: IndicesConfig, step_mm: float | None = None) -> np.ndarray:
     """Points (patient frame) of the trunk between two heights, arms cut off at the gaps beside the trunk."""
     step_mm = step_mm or max(4.0, 2.0 * cfg.grid_mm)
@@ -355,6 +368,13 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         })
     if len(sections) < 3:
         raise ValueError("too few horizontal sections of the back could be read")
+    zs = np.array([s["z_mm"] for s in sections])
+    for key in ("surface_rotation_deg", "midline_rotation_deg"):
+        if ic.rotation_smooth_mm > 0:  # see IndicesConfig.rotation_smooth_mm
+            smooth = smooth_along(zs, [s[key] for s in sections], ic.rotation_smooth_mm)
+            for s, v in zip(sections, smooth):
+                s[key.replace("_deg", "_unsmoothed_deg")] = s[key]
+                s[key] = float(v)
 
     # whole-torso asymmetry: the trunk between SP and VP registered to its own mirror image
     zb = ic.mirror_band * length
