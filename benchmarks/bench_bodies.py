@@ -68,6 +68,20 @@ TRUE_COBB_SMOOTH_MM = 20.0
 CURVE_MATCH_LEVELS = 0.2  # an estimated curve stands for a true one of its side with its apex this close
 
 
+def library_versions() -> dict:
+    """The numerical libraries a run used: the dependencies are ranges, and a rendered, reconstructed re-scan set
+    differed between two installs of the same commit (docs/analysis.md §6)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for name in ("numpy", "scipy", "numba", "opencv-python-headless", "open3d-cpu"):
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            pass
+    return out
+
+
 def draw_body(rng: np.random.Generator) -> dict:
     """One subject of the family: its SubjectConfig overrides, curve, and the scan's top above C7 (mm)."""
     girl = rng.random() < 0.5
@@ -357,6 +371,7 @@ def main(argv=None):
     report = run_set(args.report_seed, args.report_bodies, args.points, log)
     result = {"command": " ".join(["benchmarks/bench_bodies.py", *(argv if argv is not None else sys.argv[1:])]),
               "commit": commit, "machine": f"{platform.processor() or platform.machine()}, {platform.python_version()}",
+              "libraries": library_versions(),
               "seconds": time.perf_counter() - t0,
               "tune": summarise(tune, mdc), "report": summarise(report, mdc), "mdc": mdc}
     for name in ("tune", "report"):

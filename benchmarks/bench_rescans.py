@@ -44,7 +44,7 @@ from analysis.indices import CORE_LANDMARKS, analyse_torso  # noqa: E402
 from analysis.repeatability import (INDEX_FIGURES, flatten, index_changes,  # noqa: E402
                                     mdc_from_index_pairs, scanner_mdc_from)
 from analysis.torso import read_torso  # noqa: E402
-from bench_bodies import CLICK_SIGMA_MM, draw_body  # noqa: E402
+from bench_bodies import CLICK_SIGMA_MM, draw_body, library_versions  # noqa: E402
 from recon_engine.formats import read_calibration, read_capture, read_rig  # noqa: E402
 from recon_engine.reconstruction import reconstruct_torso  # noqa: E402
 from recon_engine.results import write_torso  # noqa: E402
@@ -244,6 +244,7 @@ def main(argv=None):
     clinic = clinic_mdc(mdc, args.preset)
     res = {"command": " ".join(["benchmarks/bench_rescans.py", *(argv if argv is not None else sys.argv[1:])]),
            "commit": commit, "machine": f"{platform.machine()}, {__import__('os').cpu_count()} cores",
+           "libraries": library_versions(),
            "preset": args.preset, "seconds": round(time.perf_counter() - t0, 1),
            "tune": summarise(tune, mdc), "report": summarise(report, mdc) if report else None,
            # what a clinic with such a rig flags with: each figure the larger of this set and the true surfaces'
