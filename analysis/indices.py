@@ -326,8 +326,7 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
     okm = np.isfinite(mx)
     # the line of symmetry smoothed along the height (Gaussian, sigma ic.line_smooth_mm), as rasterstereography does
     mz, mx = mz[okm], mx[okm]
-    w = np.exp(-0.5 * ((mz[:, None] - mz[None, :]) / ic.line_smooth_mm) ** 2)
-    mx_s = (w @ mx) / w.sum(axis=1)
+    mx_s = smooth_along(mz, mx, ic.line_smooth_mm)
     # the lateral deviation's reference: the straight line joining the symmetry line's own points at the SP and
     # VP heights. The landmarks' x would carry their own scatter into every section (a clicked SP 2 mm off, an
     # automatic one a few mm the other way); on the tuning bodies (seed 100) this cut the lateral deviation
@@ -368,11 +367,10 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         })
     if len(sections) < 3:
         raise ValueError("too few horizontal sections of the back could be read")
-    zs = np.array([s["z_mm"] for s in sections])
-    for key in ("surface_rotation_deg", "midline_rotation_deg"):
-        if ic.rotation_smooth_mm > 0:  # see IndicesConfig.rotation_smooth_mm
-            smooth = smooth_along(zs, [s[key] for s in sections], ic.rotation_smooth_mm)
-            for s, v in zip(sections, smooth):
+    if ic.rotation_smooth_mm > 0:  # see IndicesConfig.rotation_smooth_mm
+        zs = [s["z_mm"] for s in sections]
+        for key in ("surface_rotation_deg", "midline_rotation_deg"):
+            for s, v in zip(sections, smooth_along(zs, [s[key] for s in sections], ic.rotation_smooth_mm)):
                 s[key.replace("_deg", "_unsmoothed_deg")] = s[key]
                 s[key] = float(v)
 
