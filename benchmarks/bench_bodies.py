@@ -144,20 +144,31 @@ def true_profiles(cfg, s) -> dict:
     return out
 
 
+def analyse_as_clinic(torso, true_landmarks: dict, clicks: np.random.Generator):
+    """The analysis as the clinic runs it: automatically, then, where it asks for a trunk landmark (VP, SP),
+    again with that landmark marked as a clinician would: the simulator's point (``true_landmarks``, the
+    torso's frame, mm) plus a click's error (``CLICK_SIGMA_MM`` per axis, drawn from ``clicks``).
+
+    Returns ``(TorsoAnalysis, names marked, the automatic analysis's report)``; raises ``ValueError`` as
+    ``analyse_torso`` does."""
+    a = analyse_torso(torso)
+    mark = [n for n in (a.report.get("not_measurable") or {}).get("mark", []) if n in CORE_LANDMARKS
+            and true_landmarks.get(n) is not None]
+    if not mark:
+        return a, [], a.report
+    marks = {n: (np.asarray(true_landmarks[n]) + clicks.normal(0, CLICK_SIGMA_MM, 3)).tolist() for n in mark}
+    return analyse_torso(torso, landmarks=marks), sorted(mark), a.report
+
+
 def measure(subject, torso, clicks: np.random.Generator) -> dict:
-    """One scan analysed as the clinic does: automatically, then, where the analysis asks for a trunk landmark
-    (VP, SP), again with it marked as a clinician would (the simulator's point plus a click's error)."""
+    """One scan analysed as the clinic does (:func:`analyse_as_clinic`), against the simulator's truth."""
     t0 = time.perf_counter()
     try:
-        rep = analyse_torso(torso).report
+        a, mark, first = analyse_as_clinic(torso, subject["landmarks"], clicks)
     except ValueError as exc:
         return {"declined": f"failed: {exc}", "seconds": time.perf_counter() - t0}
-    declined = (rep.get("not_measurable") or {}).get("reason")
-    mark = [n for n in (rep.get("not_measurable") or {}).get("mark", []) if n in CORE_LANDMARKS
-            and subject["landmarks"].get(n) is not None]
-    if mark:
-        marks = {n: (np.asarray(subject["landmarks"][n]) + clicks.normal(0, CLICK_SIGMA_MM, 3)).tolist() for n in mark}
-        rep = analyse_torso(torso, landmarks=marks).report
+    rep = a.report
+    declined = (first.get("not_measurable") or {}).get("reason")
     out = {"seconds": time.perf_counter() - t0, "report": rep, "flat": flatten(rep), "marked": sorted(mark)}
     post = subject["posture"].R @ np.array([0.0, 1.0, 0.0])
     out["facing_ok"] = bool(np.asarray(rep["frame"]["posterior"]) @ post > 0.7)

@@ -9,7 +9,7 @@ reconstruction's coverage and density differ between the two scans. This script 
 per body (drawn from the simulator's body family as in ``bench_bodies.draw_body``), one simulated scenario
 at ``--preset`` (default ``demo``: 720 x 480 px cameras) with a baseline and a same-day re-scan (and, for
 the held-out set, a later visit with +5 deg at the apex), each reconstructed by the engine
-(``reconstruct_torso``) and analysed as the clinic does (``analyse_torso``). A trunk landmark the analysis
+(``reconstruct_torso``) and analysed as the clinic does (``bench_bodies.analyse_as_clinic``). A trunk landmark the analysis
 cannot find with confidence is marked as a clinician would on the visit page: at the simulator's true
 position plus a click's error (2 mm, 1-sigma per axis).
 
@@ -40,11 +40,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from analysis.indices import CORE_LANDMARKS, analyse_torso  # noqa: E402
+from analysis.indices import CORE_LANDMARKS  # noqa: E402
 from analysis.repeatability import (INDEX_FIGURES, flatten, index_changes,  # noqa: E402
                                     mdc_from_index_pairs, scanner_mdc_from)
 from analysis.torso import read_torso  # noqa: E402
-from bench_bodies import CLICK_SIGMA_MM, draw_body, library_versions  # noqa: E402
+from bench_bodies import analyse_as_clinic, draw_body, library_versions  # noqa: E402
 from recon_engine.formats import read_calibration, read_capture, read_rig  # noqa: E402
 from recon_engine.reconstruction import reconstruct_torso  # noqa: E402
 from recon_engine.results import write_torso  # noqa: E402
@@ -81,16 +81,10 @@ def analyse_capture(scenario: Path, name: str, work: Path, rng: np.random.Genera
         # does this benchmark; counted under "failed"
         raise ValueError("reconstruction failed: " + "; ".join(recon.get("problems") or []))
     torso = read_torso(out / "torso.ply")
-    rep = analyse_torso(torso).report
-    marked = []
-    mark = [n for n in (rep.get("not_measurable") or {}).get("mark", []) if n in CORE_LANDMARKS]
-    if mark:
-        truth = json.loads((scenario / "truth" / name / "truth.json").read_text())["landmarks"]
-        marks = {n: (np.asarray(truth[n]) + rng.normal(0, CLICK_SIGMA_MM, 3)).tolist() for n in mark if truth.get(n)}
-        rep = analyse_torso(torso, landmarks=marks).report
-        marked = sorted(marks)
-    # every landmark against the simulator's (the same frame as the marks above), as found or as marked
     truth = json.loads((scenario / "truth" / name / "truth.json").read_text())["landmarks"]
+    a, marked, _ = analyse_as_clinic(torso, truth, rng)
+    rep = a.report
+    # every landmark against the simulator's (the same frame as the marks), as found or as marked
     found = rep.get("landmarks") or {}
     error = {k: (np.asarray(found[k]["position_mm"]) - truth[k]).tolist() for k in CORE_LANDMARKS
              if (found.get(k) or {}).get("position_mm") is not None and truth.get(k) is not None}
