@@ -169,7 +169,7 @@ def measure(subject, torso, clicks: np.random.Generator) -> dict:
         return {"declined": f"failed: {exc}", "seconds": time.perf_counter() - t0}
     rep = a.report
     declined = (first.get("not_measurable") or {}).get("reason")
-    out = {"seconds": time.perf_counter() - t0, "report": rep, "flat": flatten(rep), "marked": sorted(mark)}
+    out = {"seconds": time.perf_counter() - t0, "report": rep, "flat": flatten(rep), "marked": mark}
     post = subject["posture"].R @ np.array([0.0, 1.0, 0.0])
     out["facing_ok"] = bool(np.asarray(rep["frame"]["posterior"]) @ post > 0.7)
     out["facing_status"] = rep["frame"]["facing"]["status"]

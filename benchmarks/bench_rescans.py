@@ -9,9 +9,9 @@ reconstruction's coverage and density differ between the two scans. This script 
 per body (drawn from the simulator's body family as in ``bench_bodies.draw_body``), one simulated scenario
 at ``--preset`` (default ``demo``: 720 x 480 px cameras) with a baseline and a same-day re-scan (and, for
 the held-out set, a later visit with +5 deg at the apex), each reconstructed by the engine
-(``reconstruct_torso``) and analysed as the clinic does (``bench_bodies.analyse_as_clinic``). A trunk landmark the analysis
-cannot find with confidence is marked as a clinician would on the visit page: at the simulator's true
-position plus a click's error (2 mm, 1-sigma per axis).
+(``reconstruct_torso``) and analysed as the clinic does (``bench_bodies.analyse_as_clinic``). A trunk
+landmark the analysis cannot find with confidence is marked as a clinician would on the visit page: at the
+simulator's true position plus a click's error (2 mm, 1-sigma per axis).
 
 Two sets, never mixed: ``tune`` (``--tune-seed``, default 100) gives the MDC of every index from its
 re-scans (``--write-mdc`` stores it in ``analysis/scanner_mdc.json`` under ``rigs[<preset>]``, beside the
