@@ -113,15 +113,17 @@ def find_vp_height(P: np.ndarray, back_mask: np.ndarray, cfg: IndicesConfig) -> 
     return z_top, "top of the back"
 
 
-def find_vp_crossing(zs: np.ndarray, depth: np.ndarray, z_neck: float) -> tuple[float, float] | None:
+def find_vp_crossing(zs: np.ndarray, depth: np.ndarray, z_neck: float) -> tuple[float, float, float] | None:
     """VP on the midline profile: where the back, coming down from the neck's hollow, has climbed half way to
-    the thoracic kyphosis's crest. Returns ``(height mm, drop mm)`` or None.
+    the thoracic kyphosis's crest. Returns ``(height mm, drop mm, rise mm)`` or None.
 
     The crest is the most posterior midline point within 200 mm below (and 20 mm above) the neck level
     ``z_neck``; the hollow the most anterior one within 220 mm above the crest. The half-depth level is
     crossed where the profile is steep, so its height is fixed to a few mm by the whole flank; the steepest
     point alone (the flank is nearly straight over 60-80 mm) moved by up to 18 mm between same-day re-scans.
-    ``drop`` (crest minus hollow) is the evidence: a few mm of it is no neck at all.
+    ``drop`` (crest minus hollow) is the evidence: a few mm of it is no neck at all. ``rise`` is how far the
+    profile climbs back above the hollow (towards the occiput): 0 when the hollow is only where the seen midline
+    stops (a scan cut on the neck, hair over it), whose half-depth level then lies too low.
     """
     d = _smooth(depth, 2)
     ok = np.isfinite(d)
@@ -144,7 +146,8 @@ def find_vp_crossing(zs: np.ndarray, depth: np.ndarray, z_neck: float) -> tuple[
     below = flank[d[flank] < level]
     k = int(below[0])
     f = (d[k - 1] - level) / max(d[k - 1] - d[k], 1e-9)
-    return float(z[k - 1] + f * (z[k] - z[k - 1])), drop
+    rise = float(d[k_h:].max() - d[k_h])
+    return float(z[k - 1] + f * (z[k] - z[k - 1])), drop, rise
 
 
 def find_sp_height(zs: np.ndarray, depth: np.ndarray, z_vp: float) -> tuple[float, str, float]:
@@ -181,6 +184,10 @@ def find_sp_height(zs: np.ndarray, depth: np.ndarray, z_vp: float) -> tuple[floa
 # kyphosis's crest, the sacral prominence this far behind the lordosis (mm)
 VP_MIN_DROP_MM = 10.0
 SP_MIN_RISE_MM = 3.0
+# ... and the neck's hollow seen as a hollow: the midline climbing this far back above it (mm). Chosen on tuning
+# seed 100's true surfaces (bench_bodies.py): scans cut 10-64 mm above C7 rise 0 (their VP 12-29 mm off), every
+# other scan 4.5 mm or more; on the rendered demo re-scans 0-2.5 mm on 3 bodies, 4.5 mm or more on 7
+VP_MIN_RISE_MM = 3.5
 
 
 def detect_landmarks(P: np.ndarray, back_mask: np.ndarray, dmap: DepthMap, cfg: IndicesConfig) -> dict:
@@ -196,9 +203,12 @@ def detect_landmarks(P: np.ndarray, back_mask: np.ndarray, dmap: DepthMap, cfg: 
     if how_vp == "neck":
         found = find_vp_crossing(zs, ds, z_vp)
         if found is not None:
-            z_c, vp_evidence = found
-            if vp_evidence >= VP_MIN_DROP_MM:
+            z_c, vp_evidence, rise = found
+            if vp_evidence >= VP_MIN_DROP_MM and rise >= VP_MIN_RISE_MM:
                 z_vp, how_vp, vp_conf = z_c, "neck flank", "high"
+            elif vp_evidence >= VP_MIN_DROP_MM:
+                # a suggestion only: the flank's upper end is where the scan stops, not the hollow
+                z_vp, how_vp = z_c, "neck flank, its hollow not seen (the scan stops on the neck, or hair covers it)"
     seen = zs[np.isfinite(ds)]
     if len(seen) and z_vp > seen.max():
         # the back's midline is not seen up to the neck (a sparse surface): VP at the highest midline point seen

@@ -95,8 +95,8 @@ def synthetic_back(rotation_deg: float = 0.0, lateral_mm: float = 0.0, hump_mm: 
     ``hump_mm·b(s)`` on the right back 70 mm from the spine, where ``b`` is a
     bump of height 1 at level ``apex`` (SP = 0, VP = 1) and 0 at both ends.
     Frame: the simulator's (faces -Y, left +X, Z up); SP at ``z_sp_mm``. A neck
-    (narrow cylinder) stands above VP and a pelvis widens below SP so the landmarks
-    can be found.
+    (narrow cylinder, its back coming 8 mm backwards again towards the occiput from 50 mm above VP) stands above
+    VP and a pelvis widens below SP so the landmarks can be found.
     """
     rng = np.random.default_rng(seed)
     z0, z1 = z_sp_mm - 80.0, z_sp_mm + length_mm + 90.0
@@ -125,7 +125,10 @@ def synthetic_back(rotation_deg: float = 0.0, lateral_mm: float = 0.0, hump_mm: 
         th = np.arctan2(y, x)
         n_around = len(x)
         back = np.clip(np.sin(th), 0, None)
-        y = y + back ** 2 * (bulge - 4.0 * np.exp(-0.5 * (x / 14.0) ** 2))
+        # the back of the head: the neck's skin comes backwards again towards the occiput, so the neck's
+        # hollow (cervical lordosis) is seen as a hollow above VP
+        occiput = 8.0 * np.clip((s - 1.10) / 0.08, 0, 1)
+        y = y + back ** 2 * (bulge + occiput - 4.0 * np.exp(-0.5 * (x / 14.0) ** 2))
         # hump on the right back (-X), 70 mm from the spine
         y = y + hump_mm * b * np.exp(-0.5 * ((x + 70.0) / 35.0) ** 2) * back ** 2
         spine_y = d_half + bulge * 0 - 45.0

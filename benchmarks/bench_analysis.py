@@ -45,6 +45,7 @@ from analysis.jsonsafe import clean  # noqa: E402
 from analysis.repeatability import index_changes, mdc_from_comparisons, mdc_from_index_pairs  # noqa: E402
 from analysis.synthetic import scan_surface  # noqa: E402
 from analysis.torso import read_torso  # noqa: E402
+from bench_bodies import analyse_as_clinic, library_versions, true_symmetry_deviation  # noqa: E402
 from recon_engine.simulator.config import preset  # noqa: E402
 from recon_engine.simulator.posed import posed_subject, posture_like  # noqa: E402
 
@@ -69,23 +70,6 @@ def truth_at_apex(subject, rep):
     out["apex_rotation_deg"] = float(subject["curve"]["rotation_deg"][i])
     out["apex_lateral_mm"] = float(subject["curve"]["lateral_mm"][i])
     return out
-
-
-def true_symmetry_deviation(subject, rep):
-    """The simulated skin's own symmetry line against the true SP-VP line (mm, + right).
-
-    Returns (signed max over the levels 0.05-0.95, value at the level where the measured maximum lies).
-    """
-    P = np.asarray(subject["symmetry_line"])
-    lm = subject["landmarks"]
-    sp, vp = np.asarray(lm["sacral_point"]), np.asarray(lm["vertebra_prominens"])
-    f = (P[:, 2] - sp[2]) / (vp[2] - sp[2])
-    left = subject["posture"].R @ np.array([1.0, 0.0, 0.0])  # the body's +X is the patient's left
-    dev = -((P - (sp + f[:, None] * (vp - sp))) @ left)
-    inside = (f > 0.05) & (f < 0.95)
-    k = int(np.argmax(np.abs(dev[inside])))
-    order = np.argsort(f)
-    return float(dev[inside][k]), float(np.interp(rep["apex"]["lateral_deviation"]["level"], f[order], dev[order]))
 
 
 def lateral_with_depth(rep, depth_mm):
@@ -135,7 +119,6 @@ def part1(out: Path, n_points: int, n_sessions: int = 4) -> dict:
     # the paper preset's torso region ends at the bottom of the back, where the sacral point is not found with
     # confidence: the clinic would have it marked, and so does this benchmark (bench_bodies.analyse_as_clinic)
     clicks = np.random.default_rng([0, 1])
-    from bench_bodies import analyse_as_clinic  # here: bench_bodies imports this module
     for i, c in enumerate(CAPTURES):
         t0 = time.perf_counter()
         subjects[c], torsos[c] = scan(cfg, c, seed=i, n=n_points)
@@ -229,8 +212,6 @@ def part1(out: Path, n_points: int, n_sessions: int = 4) -> dict:
     # installation give the MDC; session 0's own repeat pair and its 5-degree progression are checked against it
     from dataclasses import replace as _r
 
-    from analysis.repeatability import flag_comparison
-
     idx_pairs, cmp_reports, repeat_rows = [], [], []
     for session in range(1, n_sessions + 1):
         cs = _r(cfg, session=session)
@@ -306,12 +287,15 @@ def make_tiny(root: Path):
                         "--out", str(root / c), "--force", str(sc / "captures" / c)], check=True)
 
 
-def part2(recon: Path, out: Path, truth_cfg=None) -> dict:
-    """Indices and comparisons of reconstructions; against the posed truth when ``truth_cfg`` made them."""
+def part2(recon: Path, out: Path, truth_cfg=None, mdc: dict | None = None) -> dict:
+    """Indices and comparisons of reconstructions; against the posed truth when ``truth_cfg`` made them.
+
+    ``mdc``: ``{"comparison": ..., "indices": ...}`` from part 1's repeat pairs (true surfaces of other
+    sessions); without it the reconstructions' one repeat pair gives a crude comparison MDC and no index is judged.
+    """
     res = {"folder": str(recon), "captures": {}}
     torsos, analyses = {}, {}
     clicks = np.random.default_rng([0, 2])
-    from bench_bodies import analyse_as_clinic  # here: bench_bodies imports this module
     for c in CAPTURES:
         p = recon / c / "torso.ply"
         if not p.exists():
@@ -355,13 +339,28 @@ def part2(recon: Path, out: Path, truth_cfg=None) -> dict:
                                                                    "signed_distance_mm", "growth")}
             res[f"{pair[0]}->{pair[1]}"]["seconds"] = round(time.perf_counter() - t0, 1)
             print(f"recon {pair}: {rep['average_normal_distance_mm']:.3f} mm, {rep['matched_fraction']:.1%} matched", flush=True)
-    if "visit0-a->visit0-b" in res and "visit0-a->visit1-a" in res:
+    if mdc is not None:
+        # judged as the clinic judges: against the MDC of several repeat pairs, never of the one pair at hand
+        from analysis.repeatability import flag_comparison
+
+        res["mdc_source"] = mdc["source"]
+        for pair in (("visit0-a", "visit0-b"), ("visit0-a", "visit1-a")):
+            key = f"{pair[0]}->{pair[1]}"
+            if key not in res:
+                continue
+            flags = flag_comparison({k: v for k, v in res[key].items() if k != "growth"}, mdc["comparison"])
+            res[key]["exceeds_mdc"] = {k: v for k, v in flags["exceeds_mdc"].items() if v}
+            res[key]["figures_judged"] = len(flags["exceeds_mdc"])
+            if all(c in analyses for c in pair):
+                res[key]["index_changes"] = index_changes(analyses[pair[0]].report, analyses[pair[1]].report,
+                                                          mdc["indices"])
+    elif "visit0-a->visit0-b" in res and "visit0-a->visit1-a" in res:
         rep_r = res["visit0-a->visit0-b"]
-        mdc = mdc_from_comparisons([{k: v for k, v in rep_r.items() if k != "growth"}])
+        one = mdc_from_comparisons([{k: v for k, v in rep_r.items() if k != "growth"}])
         prog = res["visit0-a->visit1-a"]
-        res["progression_exceeds_mdc"] = {
-            "average_normal_distance_mm": prog["average_normal_distance_mm"] > mdc["average_normal_distance_mm"]["mdc"],
-            "signed_distance_mm.p95": prog["signed_distance_mm"]["p95"] > mdc["signed_distance_mm.p95"]["mdc"]}
+        res["progression_exceeds_one_pair_mdc"] = {
+            "average_normal_distance_mm": prog["average_normal_distance_mm"] > one["average_normal_distance_mm"]["mdc"],
+            "signed_distance_mm.p95": prog["signed_distance_mm"]["p95"] > one["signed_distance_mm.p95"]["mdc"]}
     return res
 
 
@@ -375,15 +374,28 @@ def main(argv=None):
     ap.add_argument("--skip-truth", action="store_true")
     ap.add_argument("--paper-truth", action="store_true",
                     help="the reconstructions are of the paper preset (seed 0): check them against its posed truth")
+    ap.add_argument("--mdc-from", help="an earlier bench_analysis.json whose part 1 MDC judges part 2 "
+                                      "(with --skip-truth)")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     result = {"machine": {"cpus": __import__("os").cpu_count(), "platform": platform.platform(),
                           "processor": platform.processor()},
-              "command": " ".join(sys.argv)}
+              "command": " ".join(sys.argv), "commit": commit, "libraries": library_versions()}
+    mdc = None
     if not args.skip_truth:
         result["truth"] = part1(out, args.points, args.sessions)
+        mdc = {"source": f"part 1 of this run: {args.sessions} repeat pairs of true surfaces",
+               "comparison": result["truth"]["repeatability"]["mdc_comparison"],
+               "indices": result["truth"]["repeatability"]["mdc_indices"]}
+    elif args.mdc_from:
+        earlier = json.loads(Path(args.mdc_from).read_text())
+        rp = earlier["truth"]["repeatability"]
+        mdc = {"source": f"part 1 of {args.mdc_from} (commit {earlier.get('commit', '?')}): "
+                         f"{rp['mdc_from_sessions']} repeat pairs of true surfaces",
+               "comparison": rp["mdc_comparison"], "indices": rp["mdc_indices"]}
     tiny = ROOT / "bench-out" / "analysis-tiny"
     if args.make_tiny:
         make_tiny(tiny)
@@ -392,7 +404,7 @@ def main(argv=None):
         paper = ROOT / "bench-out" / "paper-recon"
         recon = paper if (paper / "visit0-a" / "torso.ply").exists() else tiny
     if (recon / "visit0-a" / "torso.ply").exists():
-        result["reconstructions"] = part2(recon, out, preset("paper") if args.paper_truth else None)
+        result["reconstructions"] = part2(recon, out, preset("paper") if args.paper_truth else None, mdc)
     else:
         print(f"no reconstructions in {recon}: part 2 skipped")
     result["seconds"] = round(time.perf_counter() - t0, 1)

@@ -48,7 +48,6 @@ from analysis.indices import CORE_LANDMARKS, analyse_torso  # noqa: E402
 from analysis.profiles import cobb_estimate, sagittal_angles  # noqa: E402
 from analysis.repeatability import flatten, index_changes, mdc_from_index_pairs  # noqa: E402
 from analysis.synthetic import scan_surface  # noqa: E402
-from bench_analysis import true_symmetry_deviation  # noqa: E402
 from recon_engine.simulator.config import preset  # noqa: E402
 from recon_engine.simulator.bodies import curve_profiles  # noqa: E402
 from recon_engine.simulator.posed import posed_subject, posture_like  # noqa: E402
@@ -80,6 +79,23 @@ def library_versions() -> dict:
         except PackageNotFoundError:
             pass
     return out
+
+
+def true_symmetry_deviation(subject, rep):
+    """The simulated skin's own symmetry line against the true SP-VP line (mm, + right).
+
+    Returns (signed max over the levels 0.05-0.95, value at the level where the measured maximum lies).
+    """
+    P = np.asarray(subject["symmetry_line"])
+    lm = subject["landmarks"]
+    sp, vp = np.asarray(lm["sacral_point"]), np.asarray(lm["vertebra_prominens"])
+    f = (P[:, 2] - sp[2]) / (vp[2] - sp[2])
+    left = subject["posture"].R @ np.array([1.0, 0.0, 0.0])  # the body's +X is the patient's left
+    dev = -((P - (sp + f[:, None] * (vp - sp))) @ left)
+    inside = (f > 0.05) & (f < 0.95)
+    k = int(np.argmax(np.abs(dev[inside])))
+    order = np.argsort(f)
+    return float(dev[inside][k]), float(np.interp(rep["apex"]["lateral_deviation"]["level"], f[order], dev[order]))
 
 
 def draw_body(rng: np.random.Generator) -> dict:

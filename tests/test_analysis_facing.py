@@ -61,22 +61,27 @@ def test_an_uncertain_facing_withholds_every_sided_index(body):
 
 
 def marked_as_asked(body, torso, posterior):
-    """The report, with the sacral point marked as a clinician would where the analysis asks for it: the
-    back's most posterior skin point at the sacrum's height, within 20 mm of the back's middle."""
+    """The report, with the trunk landmarks marked as a clinician would where the analysis asks for them: the
+    back's most posterior skin point at the sacrum's (C7's) height, within 20 mm of the back's middle."""
     rep = analyse_torso(torso).report
-    if "sacral_point" not in (rep.get("not_measurable") or {}).get("mark", []):
+    asked = [n for n in ("sacral_point", "vertebra_prominens") if n in (rep.get("not_measurable") or {}).get("mark", [])]
+    if not asked:
         return rep
-    P = torso.points[np.abs(torso.points[:, 2] - body.z_sacrum) < 4.0]
-    across = np.cross([0.0, 0.0, 1.0], posterior) @ P.T
-    P = P[np.abs(across - np.median(across)) < 20.0]
-    return analyse_torso(torso, landmarks={"sacral_point": P[np.argmax(P @ posterior)].tolist()}).report
+    marks = {}
+    for name in asked:
+        z = body.z_sacrum if name == "sacral_point" else body.z_c7 - 5.0  # the C7 crop ends at the joint
+        P = torso.points[np.abs(torso.points[:, 2] - z) < 4.0]
+        across = np.cross([0.0, 0.0, 1.0], posterior) @ P.T
+        P = P[np.abs(across - np.median(across)) < 20.0]
+        marks[name] = P[np.argmax(P @ posterior)].tolist()
+    return analyse_torso(torso, landmarks=marks).report
 
 
 def test_same_day_rescans_keep_the_patients_sides(body):
     # the re-scan is cut differently (the neck and chin in view) and sampled anew: the sides must not swap.
     # The "torso" crop stops 30 mm below the sacrum. In the frame with the pelvis's yaw the midline's depth
     # falls from the crop's lowest row (no sacral crest; in the frame 0.7 deg off, a 20 mm plateau was one),
-    # so the analysis asks for SP, and it is marked as a clinician would
+    # so the analysis asks for SP, and it is marked as a clinician would; so is VP, whose neck is cut off
     a, truth = scan(body, 15.0, "torso", seed=1, rotation_deg=8.0)
     b, _ = scan(body, 15.0, "hips-to-chin", seed=2, rotation_deg=8.0)
     ra, rb = (marked_as_asked(body, t, truth) for t in (a, b))
