@@ -208,7 +208,7 @@ def detect_landmarks(P: np.ndarray, back_mask: np.ndarray, dmap: DepthMap, cfg: 
                 z_vp, how_vp, vp_conf = z_c, "neck flank", "high"
             elif vp_evidence >= VP_MIN_DROP_MM:
                 # a suggestion only: the flank's upper end is where the scan stops, not the hollow
-                z_vp, how_vp = z_c, "neck flank, its hollow not seen (the scan stops on the neck, or hair covers it)"
+                z_vp, how_vp = z_c, "neck flank, its hollow not seen: the scan stops on the neck or hair covers it"
     seen = zs[np.isfinite(ds)]
     if len(seen) and z_vp > seen.max():
         # the back's midline is not seen up to the neck (a sparse surface): VP at the highest midline point seen
