@@ -215,10 +215,16 @@ def detect_landmarks(P: np.ndarray, back_mask: np.ndarray, dmap: DepthMap, cfg: 
         z_vp, how_vp, vp_conf = float(seen.max()), "top of the seen midline", "low"
     z_sp, how_sp, sp_evidence = find_sp_height(zs, ds, z_vp)
     sp_conf = "high" if sp_evidence >= SP_MIN_RISE_MM else "low"
-    return {"vertebra_prominens": point_on_midline(dmap, z_vp, xs, zs, cfg, below=True), "vp_method": how_vp,
-            "vp_confidence": vp_conf, "vp_evidence_mm": vp_evidence,
-            "sacral_point": point_on_midline(dmap, z_sp, xs, zs, cfg), "sp_method": how_sp,
-            "sp_confidence": sp_conf, "sp_evidence_mm": sp_evidence,
+    vp_point = point_on_midline(dmap, z_vp, xs, zs, cfg, below=True)
+    sp_point = point_on_midline(dmap, z_sp, xs, zs, cfg)
+    # a height without the back's surface on the midline there (a hole in the reconstruction) is no landmark:
+    # a rendered re-scan's SP was "found" 75 mm behind the lordosis with no skin at its height
+    if not np.all(np.isfinite(vp_point)):
+        how_vp, vp_conf = f"{how_vp}, no surface on the midline at its height", "low"
+    if not np.all(np.isfinite(sp_point)):
+        how_sp, sp_conf = f"{how_sp}, no surface on the midline at its height", "low"
+    return {"vertebra_prominens": vp_point, "vp_method": how_vp, "vp_confidence": vp_conf, "vp_evidence_mm": vp_evidence,
+            "sacral_point": sp_point, "sp_method": how_sp, "sp_confidence": sp_conf, "sp_evidence_mm": sp_evidence,
             "midline": (zs, xs, ds)}
 
 
