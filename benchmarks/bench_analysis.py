@@ -42,7 +42,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from analysis.compare import compare_torsos, write_comparison  # noqa: E402
 from analysis.indices import analyse_torso  # noqa: E402
 from analysis.jsonsafe import clean  # noqa: E402
-from analysis.repeatability import index_changes, mdc_from_comparisons, mdc_from_index_pairs  # noqa: E402
+from analysis.repeatability import (flag_comparison, index_changes, mdc_from_comparisons,  # noqa: E402
+                                    mdc_from_index_pairs)
 from analysis.synthetic import scan_surface  # noqa: E402
 from analysis.torso import read_torso  # noqa: E402
 from bench_bodies import analyse_as_clinic, library_versions, true_symmetry_deviation  # noqa: E402
@@ -341,8 +342,6 @@ def part2(recon: Path, out: Path, truth_cfg=None, mdc: dict | None = None) -> di
             print(f"recon {pair}: {rep['average_normal_distance_mm']:.3f} mm, {rep['matched_fraction']:.1%} matched", flush=True)
     if mdc is not None:
         # judged as the clinic judges: against the MDC of several repeat pairs, never of the one pair at hand
-        from analysis.repeatability import flag_comparison
-
         res["mdc_source"] = mdc["source"]
         for pair in (("visit0-a", "visit0-b"), ("visit0-a", "visit1-a")):
             key = f"{pair[0]}->{pair[1]}"

@@ -12,6 +12,7 @@ from analysis.indices import analyse_torso
 from analysis.synthetic import scan_surface
 from recon_engine.simulator.bodies import Posture, load_makehuman, pose_body
 from recon_engine.simulator.config import SubjectConfig
+from tests.test_analysis_facing import clicked
 
 
 @pytest.fixture(scope="module")
@@ -45,10 +46,7 @@ def test_it_trusts_the_vertebra_prominens_when_the_neck_is_seen_up_to_the_head(p
 def test_a_marked_vertebra_prominens_measures_the_indices_again(posed):
     body, V = posed
     torso = _scan(posed, 30.0)
-    # the clinician's click: the back's most posterior skin point just below C7's joint, within 20 mm of the middle
-    P = torso.points[np.abs(torso.points[:, 2] - (body.z_c7 - 5.0)) < 4.0]
-    P = P[np.abs(P[:, 0] - np.median(P[:, 0])) < 20.0]
-    mark = P[np.argmax(P[:, 1])]  # the subject faces -Y: its back is +Y
+    mark = clicked(torso, body.z_c7 - 5.0, np.array([0.0, 1.0, 0.0]))  # the subject faces -Y: its back is +Y
     rep = analyse_torso(torso, landmarks={"vertebra_prominens": mark.tolist()}).report
     assert rep["landmarks"]["vertebra_prominens"]["source"] == "clinician"
     withheld = (rep.get("not_measurable") or {}).get("indices", [])

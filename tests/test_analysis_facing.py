@@ -67,14 +67,19 @@ def marked_as_asked(body, torso, posterior):
     asked = [n for n in ("sacral_point", "vertebra_prominens") if n in (rep.get("not_measurable") or {}).get("mark", [])]
     if not asked:
         return rep
-    marks = {}
-    for name in asked:
-        z = body.z_sacrum if name == "sacral_point" else body.z_c7 - 5.0  # the C7 crop ends at the joint
-        P = torso.points[np.abs(torso.points[:, 2] - z) < 4.0]
-        across = np.cross([0.0, 0.0, 1.0], posterior) @ P.T
-        P = P[np.abs(across - np.median(across)) < 20.0]
-        marks[name] = P[np.argmax(P @ posterior)].tolist()
+    # the C7 crop ends at the joint: VP is clicked just below it
+    marks = {n: clicked(torso, body.z_sacrum if n == "sacral_point" else body.z_c7 - 5.0, posterior).tolist()
+             for n in asked}
     return analyse_torso(torso, landmarks=marks).report
+
+
+def clicked(torso, z, posterior):
+    """A clinician's click on the back at height ``z`` (mm): the most posterior skin point there within 20 mm of
+    the back's middle; ``posterior`` is the back's direction (rig frame)."""
+    P = torso.points[np.abs(torso.points[:, 2] - z) < 4.0]
+    across = np.cross([0.0, 0.0, 1.0], posterior) @ P.T
+    P = P[np.abs(across - np.median(across)) < 20.0]
+    return P[np.argmax(P @ posterior)]
 
 
 def test_same_day_rescans_keep_the_patients_sides(body):
