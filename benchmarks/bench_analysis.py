@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import subprocess
 import sys
 import time
@@ -46,7 +45,8 @@ from analysis.repeatability import (flag_comparison, index_changes, mdc_from_com
                                     mdc_from_index_pairs)
 from analysis.synthetic import scan_surface  # noqa: E402
 from analysis.torso import read_torso  # noqa: E402
-from bench_bodies import analyse_as_clinic, library_versions, true_symmetry_deviation  # noqa: E402
+from bench_bodies import analyse_as_clinic, true_symmetry_deviation  # noqa: E402
+from provenance import provenance  # noqa: E402
 from recon_engine.simulator.config import preset  # noqa: E402
 from recon_engine.simulator.posed import posed_subject, posture_like  # noqa: E402
 
@@ -379,10 +379,7 @@ def main(argv=None):
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-    result = {"machine": {"cpus": __import__("os").cpu_count(), "platform": platform.platform(),
-                          "processor": platform.processor()},
-              "command": " ".join(sys.argv), "commit": commit, "libraries": library_versions()}
+    result = provenance(__file__, argv)
     mdc = None
     if not args.skip_truth:
         result["truth"] = part1(out, args.points, args.sessions)

@@ -31,8 +31,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
-import subprocess
 import sys
 import time
 from dataclasses import replace
@@ -48,6 +46,7 @@ from analysis.indices import CORE_LANDMARKS, analyse_torso  # noqa: E402
 from analysis.profiles import cobb_estimate, sagittal_angles  # noqa: E402
 from analysis.repeatability import flatten, index_changes, mdc_from_index_pairs  # noqa: E402
 from analysis.synthetic import scan_surface  # noqa: E402
+from provenance import provenance  # noqa: E402
 from recon_engine.simulator.config import preset  # noqa: E402
 from recon_engine.simulator.bodies import curve_profiles  # noqa: E402
 from recon_engine.simulator.posed import posed_subject, posture_like  # noqa: E402
@@ -65,20 +64,6 @@ CLICK_SIGMA_MM = 2.0  # a clinician's mark on the torso picture, 1-sigma per axi
 # its two curves' shapes join, which no radiograph would call curves), read as the estimate reads its own line
 TRUE_COBB_SMOOTH_MM = 20.0
 CURVE_MATCH_LEVELS = 0.2  # an estimated curve stands for a true one of its side with its apex this close
-
-
-def library_versions() -> dict:
-    """The numerical libraries a run used: the dependencies are ranges, and a rendered, reconstructed re-scan set
-    differed between two installs of the same commit (docs/analysis.md §6)."""
-    from importlib.metadata import PackageNotFoundError, version
-
-    out = {}
-    for name in ("numpy", "scipy", "numba", "opencv-python-headless", "open3d-cpu"):
-        try:
-            out[name] = version(name)
-        except PackageNotFoundError:
-            pass
-    return out
 
 
 def true_symmetry_deviation(subject, rep):
@@ -387,8 +372,8 @@ def main(argv=None):
     ap.add_argument("--json", help="write the summaries here")
     ap.add_argument("--write-mdc", action="store_true", help="write the tuning set's MDC to analysis/scanner_mdc.json")
     args = ap.parse_args(argv)
-    # the commit the code was loaded from (HEAD may move during the run)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    run = provenance(__file__, argv)
+    commit = run["commit"]
     t0 = time.perf_counter()
     log = lambda msg: print(msg, flush=True)  # noqa: E731
     log(f"tuning bodies (seed {args.tune_seed}):")
@@ -396,10 +381,7 @@ def main(argv=None):
     mdc = mdc_from_index_pairs(repeat_pairs(tune))
     log(f"held-out bodies (seed {args.report_seed}):")
     report = run_set(args.report_seed, args.report_bodies, args.points, log)
-    result = {"command": " ".join(["benchmarks/bench_bodies.py", *(argv if argv is not None else sys.argv[1:])]),
-              "commit": commit, "machine": f"{platform.processor() or platform.machine()}, {platform.python_version()}",
-              "libraries": library_versions(),
-              "seconds": time.perf_counter() - t0,
+    result = {**run, "seconds": time.perf_counter() - t0,
               "tune": summarise(tune, mdc), "report": summarise(report, mdc), "mdc": mdc}
     for name in ("tune", "report"):
         log(f"\n{name}: " + json.dumps(result[name], indent=1))

@@ -10,12 +10,14 @@ session 1). ``--engine DIR`` times another version of the engine, e.g. the
 dense solver: ``git archive b61c93c recon_engine | tar -x -C /tmp/old`` then
 ``--engine /tmp/old``. Set ``OPENBLAS_NUM_THREADS=1`` on a shared machine:
 threaded BLAS on busy cores makes even small solves slow and the timings
-meaningless.
+meaningless. ``--json OUT`` writes the figures with the run's provenance.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import resource
 import sys
 import time
@@ -27,6 +29,7 @@ def main() -> int:
     ap.add_argument("--scenario", default="bench-out/tiny-tf")
     ap.add_argument("--poses", help="comma-separated test-field poses to use (default: all)")
     ap.add_argument("--engine", help="folder holding the recon_engine package to time (default: this checkout's)")
+    ap.add_argument("--json", help="write the figures here")
     args = ap.parse_args()
     sys.path.insert(0, args.engine or str(Path(__file__).resolve().parents[1]))
     sys.path.insert(1, str(Path(__file__).resolve().parent))
@@ -34,7 +37,9 @@ def main() -> int:
     from recon_engine.calibration import calibrate
     from recon_engine.formats import read_capture, read_rig, read_testfield
 
-    from bench_simulate import machine  # after the engine: it puts this checkout first on sys.path
+    from provenance import provenance  # after the engine: it puts this checkout first on sys.path
+
+    run = provenance(__file__)
 
     scenario = Path(args.scenario)
     if not (scenario / "rig.json").exists():
@@ -63,14 +68,27 @@ def main() -> int:
     t0, c0 = time.perf_counter(), time.process_time()
     calibrate(caps, rig, tf)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    print(f"Machine: {machine()}; engine {Path(bundle.__file__).parents[1]}")
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"Machine: {run['machine']}; engine {Path(bundle.__file__).parents[1]}")
     print(f"{len(rig.camera_ids)} cameras, poses {[c.pose for c in caps]}: calibration {wall:.1f} s wall, "
-          f"{cpu:.1f} s CPU, peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
+          f"{cpu:.1f} s CPU, peak RSS {peak:.0f} MiB")
     for i, (w, c, pb, sol) in enumerate(passes, 1):
         print(f"  adjustment pass {i}: {w:.2f} s wall, {c:.2f} s CPU; {len(pb.uv)} corners observed, "
               f"{len(pb.points)} corners, {sol.iterations} iterations, sigma0 {sol.sigma0:.6f}, "
               f"converged {sol.converged} {getattr(sol, 'reason', '')}")
     print(f"  adjustments together: {sum(p[0] for p in passes):.2f} s wall, {sum(p[1] for p in passes):.2f} s CPU")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps({
+            **run, "engine": str(Path(bundle.__file__).parents[1]), "scenario": str(scenario),
+            "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS"), "cameras": len(rig.camera_ids),
+            "poses": [c.pose for c in caps], "calibration_wall_s": wall, "calibration_cpu_s": cpu,
+            "peak_rss_mib": peak,
+            "passes": [{"wall_s": w, "cpu_s": c, "observations": len(pb.uv), "corners": len(pb.points),
+                        "iterations": sol.iterations,
+                        "sigma0": float(sol.sigma0), "converged": bool(sol.converged)}
+                       for w, c, pb, sol in passes]}, indent=2))
+        print(f"raw figures: {args.json}")
     return 0
 
 

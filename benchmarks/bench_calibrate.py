@@ -39,7 +39,7 @@ from recon_engine.simulator.config import preset  # noqa: E402
 from recon_engine.simulator.scenario import simulate  # noqa: E402
 from recon_engine.stability import compare_calibrations  # noqa: E402
 
-from bench_simulate import machine  # noqa: E402
+from provenance import provenance  # noqa: E402
 
 DISTURBANCE = (("A3", "pd", 0.001), ("C2", "pp_x", 2.0))
 
@@ -118,6 +118,7 @@ def main() -> int:
     ap.add_argument("--scenario", default="bench-out/paper")
     ap.add_argument("--workers", type=int, default=None)
     args = ap.parse_args()
+    run = provenance(__file__)
     base = Path(args.scenario)
     rig, tf, caps = load(base)
     truth = read_calibration(base / "truth" / "calibration.json")
@@ -160,8 +161,7 @@ def main() -> int:
     unstable_same = [c for c, m in same["cameras"].items() if not m["stable"]]
     unstable_dist = [c for c, m in dist["cameras"].items() if not m["stable"]]
     raw = {
-        "machine": machine(),
-        "command": "  ".join(sys.argv),
+        **run,
         "cameras": len(calib.cameras), "poses": len(caps), "observations": report.observations,
         "time_s": {"ours": t_ours, "opencv_per_camera_adjustment_only": t_cv, "stability_20_cameras": t_stability},
         "peak_rss_mib": peak,

@@ -41,9 +41,7 @@ paper-scale defaults were tuned on seed 0). Writes ``OUT/bench_lens.json``.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -64,7 +62,7 @@ from recon_engine.simulator.rig import make_rig  # noqa: E402
 from recon_engine.simulator.scenario import simulate  # noqa: E402
 
 from bench_reconstruct_arm import Truth  # noqa: E402
-from bench_simulate import machine  # noqa: E402
+from provenance import provenance  # noqa: E402
 
 
 def scenario_cfg(preset_name: str, seed: int, lens: str):
@@ -281,11 +279,7 @@ def main() -> int:
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                            cwd=Path(__file__).resolve().parents[1]).stdout.strip()
-    result = {"command": " ".join(sys.argv), "commit": commit, "machine": machine(),
-              "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-              "reporting_seeds": args.seeds, "runs": []}
+    result = {**provenance(__file__), "reporting_seeds": args.seeds, "runs": []}
     json_path = Path(args.json) if args.json else out / "bench_lens.json"
     if args.synthetic_paper:
         result["synthetic_paper"] = []

@@ -41,7 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from recon_engine import matching  # noqa: E402
 
-from bench_simulate import machine  # noqa: E402
+from provenance import provenance  # noqa: E402
 
 
 def reference_module(commit: str):
@@ -105,6 +105,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reference", default=None, help="a commit whose matching.py to compare with (e.g. 43bb649)")
     args = ap.parse_args()
+    run = provenance(__file__)
     left, right, xy, true_right, start = synthetic_pair()
     n = len(xy)
     rows = matching.along_rows(xy)
@@ -113,7 +114,7 @@ def main() -> int:
         modules[f"numpy ({args.reference})"] = reference_module(args.reference)
     matching.ncc_search(left, right, xy[:4], true_right[:4, 0], 2, 1, 7)  # compiled or loaded outside the timing
     matching.least_squares_refine(left, right, xy[:4], start[:4], window=9)
-    out = {"machine": machine(), "command": " ".join(["benchmarks/bench_matching_kernels.py", *sys.argv[1:]]),
+    out = {**run,
            "points": n, "us_per_point": {}, "agreement": {}}
     results = {}
     searches = {"ncc 7 px, ±6 × ±2": (6, 7), "ncc 11 px, ±3 × ±2": (3, 11)}

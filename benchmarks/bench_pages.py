@@ -34,10 +34,8 @@ import argparse
 import datetime as dt
 import json
 import os
-import platform
 import secrets
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -47,7 +45,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from provenance import provenance  # noqa: E402
 from tests.pg_server import PG, run_sql  # noqa: E402
 
 FIRST = ["Alice", "Ben", "Chloé", "David", "Emma", "Farid", "Grace", "Hugo", "Inès", "Jonas", "Kira", "Liam", "Maya",
@@ -373,12 +373,6 @@ def counts_of():
     return {m.__name__: m.objects.count() for m in (Patient, Visit, CaptureSession, Job, Reconstruction, Comparison)}
 
 
-def machine() -> dict:
-    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                if line.startswith("model name")), platform.processor())
-    return {"nproc": os.cpu_count(), "cpu": cpu, "python": platform.python_version(), "kernel": platform.release()}
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--patients", type=int, default=10000)
@@ -390,6 +384,7 @@ def main():
     ap.add_argument("--json", metavar="OUT", help="write the figures here")
     ap.add_argument("--only", nargs="*", help="time only the pages whose name contains one of these words")
     args = ap.parse_args()
+    run = provenance(__file__)
     if args.visits < args.patients:
         ap.error("--visits must be at least --patients")
 
@@ -415,12 +410,7 @@ def main():
         t = time.perf_counter()
         pages = time_pages(args.repeats, args.only)
         load_after = os.getloadavg()
-        out = {"command": "benchmarks/bench_pages.py " + " ".join(sys.argv[1:]),
-               "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                                        text=True).stdout.strip(),
-               "dirty": bool(subprocess.run(["git", "status", "--porcelain", "clinic", "templates"], cwd=ROOT,
-                                            capture_output=True, text=True).stdout.strip()),
-               "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"), "machine": machine(),
+        out = {**run,
                "load_average_1min": {"before": round(load_before[0], 2), "after": round(load_after[0], 2)},
                "timing_s": round(time.perf_counter() - t, 1), "rows": rows_in, "repeats": args.repeats,
                "target_p95_ms": 150, "pages": pages}

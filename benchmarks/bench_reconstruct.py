@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import pickle
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -44,7 +43,7 @@ from recon_engine.registration import ICPatchConfig, Transform, pair_fit  # noqa
 from recon_engine.surface import in_patches  # noqa: E402
 
 from bench_reconstruct_arm import Truth  # noqa: E402
-from bench_simulate import machine  # noqa: E402
+from provenance import provenance  # noqa: E402
 
 
 def displacement_errors(T: dict, D: dict, at: np.ndarray) -> dict:
@@ -209,11 +208,7 @@ def main() -> int:
                     help="pickle each capture's arm surfaces and reports to bench-out/surfaces-<capture>.pkl")
     args = ap.parse_args()
     reuse_freed_images()  # as the command line does: the figures are the CLI's
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent).stdout.strip()
-    except OSError:
-        commit = "?"
+    run = provenance(__file__)
     runs = {c: run_capture(args, c) for c in args.capture}
     # per method: the mean over every displaced arm of every capture
     methods = list(next(iter(runs.values()))["displacement_error"])
@@ -228,9 +223,7 @@ def main() -> int:
                       "max_rotation_deg": float(np.max([e["rotation_deg"] for e in rows])),
                       "seconds_mean": float(np.mean([r["peers"][m]["seconds"] if m in r["peers"] else
                                                      r["peers"]["ours"]["seconds"] for r in runs.values()]))}
-    out = {"machine": machine(), "commit": commit,
-           "command": " ".join(["benchmarks/bench_reconstruct.py", *sys.argv[1:]]),
-           "captures": runs, "summary": summary}
+    out = {**run, "captures": runs, "summary": summary}
     if len(runs) == 1:
         out.update(next(iter(runs.values())))  # the single-capture layout of earlier runs
     Path("bench-out/bench_reconstruct.json").write_text(json.dumps(out, indent=2))

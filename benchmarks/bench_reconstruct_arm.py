@@ -52,7 +52,7 @@ from recon_engine.parallel import reuse_freed_images  # noqa: E402
 from recon_engine.reconstruction import (ReconstructionConfig, arm_cameras, reconstruct_arm,  # noqa: E402
                                          surface_from_intersection)
 
-from bench_simulate import machine  # noqa: E402
+from provenance import provenance  # noqa: E402
 
 
 class Truth:
@@ -246,7 +246,7 @@ def main() -> int:
     cap = read_capture(S / "captures" / args.capture, rig)
     truth = Truth(S, args.capture)
     centre = rig_centre(list(cal.cameras.values()))
-    out = {"machine": machine(), "command": " ".join(["benchmarks/bench_reconstruct_arm.py", *sys.argv[1:]]),
+    out = {**provenance(__file__),
            "calibration": "true, capture time" if args.true_calibration else f"ours: {args.calibration}",
            "ours_settings": {"fill_spacing_mm": ours_cfg.tracking.fill_spacing_mm,
                              "max_sigma_factor": ours_cfg.max_sigma_factor},

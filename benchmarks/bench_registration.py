@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import pickle
-import subprocess
 import sys
 import time
 from dataclasses import replace
@@ -35,7 +34,7 @@ from recon_engine.registration import Transform, choose_patches, icpatch, patch_
 
 from bench_reconstruct import point_cloud, displacement_errors, open3d_multiway, open3d_pairwise  # noqa: E402
 from bench_reconstruct_arm import Truth  # noqa: E402
-from bench_simulate import machine  # noqa: E402
+from provenance import provenance  # noqa: E402
 
 # our registration's variants: name -> changes to the default ICPatchConfig
 VARIANTS = {
@@ -106,6 +105,7 @@ def main() -> int:
     ap.add_argument("--calibration", default="bench-out/paper-calibration.json")
     ap.add_argument("--variant", nargs="*", default=DEFAULT_VARIANTS, choices=list(VARIANTS))
     args = ap.parse_args()
+    run = provenance(__file__)
     S = Path(args.scenario)
     rig = read_rig(S / "rig.json")
     cal = read_calibration(args.calibration)
@@ -154,11 +154,8 @@ def main() -> int:
                          "seconds_mean": float(np.mean([runs[name]["seconds"] for runs in rows.values()]))}
         print(f"{name:24s} mean {summary[name]['mean_rms_mm']:.4f} mm, max {summary[name]['max_rms_mm']:.4f} mm, "
               f"{summary[name]['mean_rotation_deg']:.4f} deg, {summary[name]['seconds_mean']:.1f} s")
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                            cwd=Path(__file__).parent).stdout.strip()
     Path("bench-out/bench_registration.json").write_text(json.dumps(
-        {"machine": machine(), "commit": commit, "command": " ".join(["benchmarks/bench_registration.py", *sys.argv[1:]]),
-         "captures": rows, "summary": summary}, indent=2, default=float))
+        {**run, "captures": rows, "summary": summary}, indent=2, default=float))
     return 0
 
 

@@ -26,9 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import shutil
-import subprocess
 import sys
 import time
 from dataclasses import replace
@@ -44,7 +42,8 @@ from analysis.indices import CORE_LANDMARKS  # noqa: E402
 from analysis.repeatability import (INDEX_FIGURES, flatten, index_changes,  # noqa: E402
                                     mdc_from_index_pairs, scanner_mdc_from)
 from analysis.torso import read_torso  # noqa: E402
-from bench_bodies import analyse_as_clinic, draw_body, library_versions  # noqa: E402
+from bench_bodies import analyse_as_clinic, draw_body  # noqa: E402
+from provenance import provenance  # noqa: E402
 from recon_engine.formats import read_calibration, read_capture, read_rig  # noqa: E402
 from recon_engine.reconstruction import reconstruct_torso  # noqa: E402
 from recon_engine.results import write_torso  # noqa: E402
@@ -222,9 +221,8 @@ def main(argv=None):
     ap.add_argument("--write-mdc", action="store_true",
                     help="store the tuning set's MDC in analysis/scanner_mdc.json for this preset's rigs")
     args = ap.parse_args(argv)
-    # the commit the code was loaded from (a run takes an hour; HEAD may move meanwhile)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                            text=True).stdout.strip()
+    run = provenance(__file__, argv)
+    commit = run["commit"]
     out = Path(args.out) / args.preset
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -236,9 +234,7 @@ def main(argv=None):
     report = run_set("report", args.report_seed, args.report_bodies, args.preset, out, True, log) \
         if args.report_bodies else []
     clinic = clinic_mdc(mdc, args.preset)
-    res = {"command": " ".join(["benchmarks/bench_rescans.py", *(argv if argv is not None else sys.argv[1:])]),
-           "commit": commit, "machine": f"{platform.machine()}, {__import__('os').cpu_count()} cores",
-           "libraries": library_versions(),
+    res = {**run,
            "preset": args.preset, "seconds": round(time.perf_counter() - t0, 1),
            "tune": summarise(tune, mdc), "report": summarise(report, mdc) if report else None,
            # what a clinic with such a rig flags with: each figure the larger of this set and the true surfaces'

@@ -39,7 +39,7 @@ from recon_engine.simulator.rig import make_rig  # noqa: E402
 from recon_engine.simulator.scenario import simulate  # noqa: E402
 
 from bench_reconstruct_arm import Truth, measure_arm  # noqa: E402
-from bench_simulate import machine  # noqa: E402
+from provenance import provenance  # noqa: E402
 
 
 def _conditions(cfg, **kw):
@@ -171,6 +171,7 @@ def main() -> int:
     ap.add_argument("--add-peers", action="store_true",
                     help="run only --peers on conditions already in the JSON, keeping their other figures")
     args = ap.parse_args()
+    run = provenance(__file__)
     if args.table:
         print(markdown(json.loads(Path(args.json).read_text())))
         return 0
@@ -183,7 +184,7 @@ def main() -> int:
     result = json.loads(dest.read_text()) if dest.exists() else {}
     if result.get("preset") != args.preset or result.get("seed") != args.seed:
         result = {}
-    result.update({"machine": machine(), "command": " ".join(["benchmarks/bench_robustness.py", *sys.argv[1:]]),
+    result.update({**run,
                    "preset": args.preset, "seed": args.seed, "arm": args.arm,
                    "calibration": "true, capture time (every method)"})
     rows = result.setdefault("conditions", {})

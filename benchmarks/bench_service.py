@@ -18,7 +18,6 @@ import argparse
 import http.client
 import json
 import os
-import platform
 import subprocess
 import sys
 import threading
@@ -27,7 +26,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from provenance import provenance  # noqa: E402
 from tests.service_flow import (HttpApi, calibrate_set, free_port, register_rig,  # noqa: E402
                                 stop_processes, wait_for_job, wait_for_port)
 
@@ -145,9 +146,7 @@ def main(argv=None):
     server = subprocess.Popen([sys.executable, "-m", "gunicorn", "clinic.wsgi:application", "--bind",
                                f"127.0.0.1:{port}", "--workers", "2", "--timeout", "600"], cwd=ROOT, env=env,
                               stdout=open(logdir / "server.log", "w"), stderr=subprocess.STDOUT)
-    result = {"scenario": str(args.scenario), "capture": args.capture,
-              "machine": f"{os.cpu_count()} cores, {platform.processor() or platform.machine()}, "
-                         f"Python {platform.python_version()}"}
+    result = {**provenance(__file__, argv), "scenario": str(args.scenario), "capture": args.capture}
     workers = []
     try:
         wait_for_port(port)

@@ -10,10 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import resource
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -22,22 +19,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from provenance import provenance  # noqa: E402
 from recon_engine.simulator.checks import marker_corner_errors, neighbour_ncc  # noqa: E402
 from recon_engine.simulator.config import PRESETS, preset  # noqa: E402
 from recon_engine.simulator.scenario import simulate  # noqa: E402
-
-
-def machine() -> str:
-    cpu = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
-    return f"{os.cpu_count()} cores ({cpu}), {mem:.0f} GiB RAM, {platform.system()} {platform.release()}, Python {platform.python_version()}"
 
 
 def main() -> int:
@@ -49,6 +34,7 @@ def main() -> int:
     ap.add_argument("--reuse", action="store_true",
                     help="keep an existing scenario in OUT and only re-run the checks (timings from the last run)")
     args = ap.parse_args()
+    run = provenance(__file__)
     out = Path(args.out or f"bench-out/{args.preset}")
     cfg = preset(args.preset, seed=args.seed)
     previous = out.parent / f"bench_simulate_{args.preset}.json"
@@ -70,14 +56,8 @@ def main() -> int:
     ncc = {name: neighbour_ncc(out, name) for name, _ in cfg.captures}
     t_checks = time.perf_counter() - t1
     medians = [p["median"] for pairs in ncc.values() for p in pairs.values()]
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent).stdout.strip()
-    except OSError:
-        commit = "?"
     result = {
-        "preset": args.preset, "seed": args.seed, "commit": commit, "machine": machine(),
-        "command": f".venv/bin/python benchmarks/bench_simulate.py --preset {args.preset} --out {out}",
+        **run, "preset": args.preset, "seed": args.seed,
         "images": n_images, "image_size": [cfg.camera.width, cfg.camera.height],
         "wall_s": round(wall, 1), "per_capture_s": summary["timings_s"],
         "peak_rss_mib": {"main": round(peak_self), "largest_worker": round(peak_children)},
@@ -96,7 +76,7 @@ def main() -> int:
     dest.write_text(json.dumps(result, indent=2))
     c = result["marker_corner_error_px"]
     print(f"""
-### Simulator, preset `{args.preset}` (commit {commit})
+### Simulator, preset `{args.preset}` (commit {run['commit']})
 
 Command: `{result['command']}`
 Machine: {result['machine']}

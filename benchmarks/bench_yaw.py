@@ -31,8 +31,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -47,6 +45,7 @@ from analysis.config import IndicesConfig  # noqa: E402
 from analysis.indices import band_yaw_frame, initial_frame  # noqa: E402
 from analysis.torso import read_torso  # noqa: E402
 from bench_bodies import draw_scans  # noqa: E402
+from provenance import provenance  # noqa: E402
 
 BANDS = ("pelvis", "ends", "shoulders", "whole")
 VP_SHIFTS_MM = (-6.0, 0.0, 6.0)
@@ -164,7 +163,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.seed is None and args.rendered is None:
         ap.error("give --seed, --rendered, or both")
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    run = provenance(__file__, argv)
     log = lambda msg: print(msg, flush=True)  # noqa: E731
     ic, t0, result = IndicesConfig(), time.perf_counter(), {}
     if args.seed is not None:
@@ -181,9 +180,7 @@ def main(argv=None):
         result["rendered"] = {"root": str(args.rendered), "set": args.set, "scans": rows, "summary": summarise(rows)}
     for k, v in result.items():
         print_table(f"{k} ({v.get('seed', v.get('set'))})", v["summary"])
-    result.update({"command": " ".join(["benchmarks/bench_yaw.py", *(argv if argv is not None else sys.argv[1:])]),
-                   "commit": commit, "machine": f"{platform.processor() or platform.machine()}, {platform.system()}",
-                   "seconds": round(time.perf_counter() - t0, 1)})
+    result.update({**run, "seconds": round(time.perf_counter() - t0, 1)})
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result, indent=1))
