@@ -189,6 +189,7 @@ def run_capture(args, capture: str) -> dict:
             "pairs": [{"a": a, "b": b, **pair_fit(surfaces[a], surfaces[b], alt["transforms"][a], alt["transforms"][b])}
                       for a, b in zip(order, order[1:] + order[:1])]}
     if args.keep_surfaces:
+        Path("bench-out").mkdir(exist_ok=True)
         with open(f"bench-out/surfaces-{capture}.pkl", "wb") as f:
             pickle.dump({"surfaces": surfaces, "reports": rep["arms"], "failed": rep["failed_arms"]}, f)
     print(capture, json.dumps({k: v for k, v in out.items() if k not in ("pairwise", "sigmas", "strength")},

@@ -18,6 +18,7 @@ import argparse
 import http.client
 import json
 import os
+import secrets
 import subprocess
 import sys
 import threading
@@ -134,7 +135,8 @@ def main(argv=None):
     env = {**os.environ, "DATABASE_URL": f"postgres://postgres@127.0.0.1:5432/{dbname}",
            "CELERY_BROKER_URL": "redis://127.0.0.1:6379/14", "CELERY_QUEUE": f"bench-{os.getpid()}",
            "DJANGO_SETTINGS_MODULE": "clinic.settings", "TORSOSCAN_VAR": str(var), "DEBUG": "false",
-           "SECRET_KEY": "bench-only-secret-key-0123456789abcdef", "ALLOWED_HOSTS": "127.0.0.1,localhost"}
+           "SECRET_KEY": secrets.token_urlsafe(50),  # DEBUG is off: the settings refuse a weak key
+           "ALLOWED_HOSTS": "127.0.0.1,localhost"}
     manage(env, "migrate", "--noinput")
     manage(env, "shell", "-c",
            "from django.contrib.auth.models import User; from clinic.models import Clinic, Member, Patient, Visit;"
