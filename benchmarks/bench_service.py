@@ -136,7 +136,10 @@ def main(argv=None):
            "CELERY_BROKER_URL": "redis://127.0.0.1:6379/14", "CELERY_QUEUE": f"bench-{os.getpid()}",
            "DJANGO_SETTINGS_MODULE": "clinic.settings", "TORSOSCAN_VAR": str(var), "DEBUG": "false",
            "SECRET_KEY": secrets.token_urlsafe(50),  # DEBUG is off: the settings refuse a weak key
-           "ALLOWED_HOSTS": "127.0.0.1,localhost"}
+           "ALLOWED_HOSTS": "127.0.0.1,localhost",
+           # plain HTTP over loopback, as behind a TLS proxy: no redirect to https, cookies sent without TLS
+           "SECURE_SSL_REDIRECT": "false", "SESSION_COOKIE_SECURE": "false", "CSRF_COOKIE_SECURE": "false",
+           "SECURE_HSTS_SECONDS": "0"}
     manage(env, "migrate", "--noinput")
     manage(env, "shell", "-c",
            "from django.contrib.auth.models import User; from clinic.models import Clinic, Member, Patient, Visit;"
