@@ -37,7 +37,7 @@ def main() -> int:
     from recon_engine.calibration import calibrate
     from recon_engine.formats import read_capture, read_rig, read_testfield
 
-    from provenance import provenance  # after the engine: it puts this checkout first on sys.path
+    from provenance import provenance
 
     run = provenance(__file__)
 
