@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import time
 from dataclasses import replace
@@ -39,7 +38,7 @@ from recon_engine.simulator.rig import make_rig  # noqa: E402
 from recon_engine.simulator.scenario import simulate  # noqa: E402
 
 from bench_reconstruct_arm import Truth, measure_arm  # noqa: E402
-from provenance import provenance  # noqa: E402
+from provenance import commit as provenance_commit, provenance  # noqa: E402
 
 
 def _conditions(cfg, **kw):
@@ -112,8 +111,7 @@ def run_condition(folder: Path, arm: str, peers: set, ours: bool = True) -> dict
 
 def stamped(figures: dict) -> dict:
     """Each method's figures with the commit that measured them (rows can mix runs: ``--keep-peers``)."""
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                            cwd=Path(__file__).resolve().parents[1]).stdout.strip()
+    commit = provenance_commit()
     return {k: ({**v, "commit": commit} if isinstance(v, dict) else v) for k, v in figures.items()}
 
 
