@@ -119,16 +119,19 @@ def main(argv=None):
     ap.add_argument("--jobs", type=int, default=3, help="reconstruction jobs per worker count (0: upload and polling only)")
     ap.add_argument("--out", type=Path, default=ROOT / "bench-out" / "service.json")
     ap.add_argument("--workers", default="1,2")
+    ap.add_argument("--poll-seconds", type=float, default=10.0, help="how long each polling rate is measured (s)")
+    ap.add_argument("--database", default="torsoscan_bench",
+                    help="PostgreSQL database to create afresh (dropped first if it exists)")
     args = ap.parse_args(argv)
     import psycopg
 
-    var = ROOT / "bench-out" / "service-var"
+    var = args.out.parent / "service-var"  # the server's files, beside the results
     if var.exists():
         import shutil
 
         shutil.rmtree(var)
     (var / "logs").mkdir(parents=True)
-    dbname = "torsoscan_bench"
+    dbname = args.database
     with psycopg.connect(dbname="postgres", host="127.0.0.1", user="postgres", autocommit=True) as conn:
         conn.execute(f'DROP DATABASE IF EXISTS "{dbname}" WITH (FORCE)')
         conn.execute(f'CREATE DATABASE "{dbname}"')
@@ -178,7 +181,7 @@ def main(argv=None):
                                 + [(f"gunicorn worker {k + 1}", c) for k, c in enumerate(children(server.pid))]}}
         print("upload:", result["upload"], flush=True)
         result["polling_requests_per_second"] = {
-            str(c): round(poll_rate(port, key, sid, c), 1) for c in (1, 4)}
+            str(c): round(poll_rate(port, key, sid, c, args.poll_seconds), 1) for c in (1, 4)}
         print("polling:", result["polling_requests_per_second"], flush=True)
 
         result["jobs"] = {}
