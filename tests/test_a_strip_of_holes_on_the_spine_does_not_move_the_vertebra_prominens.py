@@ -1,0 +1,55 @@
+"""A reconstruction often leaves a narrow strip of holes along the spine (the depth map's cells on the line of
+symmetry empty, the cells beside them full). Across the neck's flank such a strip cut the midline profile,
+and VP, interpolated in height from 30 mm away, moved 6 mm between two same-day scans."""
+
+import numpy as np
+
+from analysis.backsurface import DepthMap
+from analysis.config import IndicesConfig
+from analysis.landmarks import depth_across_gap, find_vp_crossing, midline_profile
+
+
+def neck_and_back(hole_rows=None, hole_cols=1):
+    """A back whose midline rises from the neck's hollow (z 1200) down to the kyphosis's crest (z 1050), each
+    row a symmetric bowl; ``hole_rows`` (z range, mm) emptied in ``hole_cols`` columns on the midline."""
+    x = np.arange(-200.0, 201.0, 4.0)
+    z = np.arange(900.0, 1300.0, 4.0)
+    profile = 60.0 - 15.0 * (1 + np.tanh((z - 1120.0) / 25.0)) + 8.0 * np.exp(-0.5 * ((z - 1050.0) / 40.0) ** 2)
+    profile = profile + np.where(z > 1190.0, 0.2 * (z - 1190.0), 0.0)  # back up towards the occiput
+    depth = profile[:, None] - x[None, :] ** 2 / 800.0
+    if hole_rows is not None:
+        rows = (z >= hole_rows[0]) & (z <= hole_rows[1])
+        mid = int(np.argmin(np.abs(x)))
+        cols = slice(mid - (hole_cols - 1) // 2, mid + hole_cols // 2 + 1)
+        depth[np.ix_(rows, np.arange(len(x))[cols])] = np.nan
+    return DepthMap(x, z, depth)
+
+
+def vp_height(dmap):
+    cfg = IndicesConfig(grid_mm=4.0)
+    zs, xs, ds = midline_profile(dmap, cfg)
+    z_vp, drop, rise = find_vp_crossing(zs, ds, 1100.0)
+    return z_vp, zs, ds
+
+
+def test_a_one_cell_strip_across_the_flank_leaves_vp_where_it_was():
+    intact, _, _ = vp_height(neck_and_back())
+    z_vp, zs, ds = vp_height(neck_and_back(hole_rows=(1080.0, 1140.0)))
+    assert np.isfinite(ds[(zs > 1080) & (zs < 1140)]).all()
+    assert abs(z_vp - intact) < 0.5
+
+
+def test_a_wide_hole_is_not_bridged():
+    # five cells (20 mm) across the line: no depth is made up there
+    _, zs, ds = vp_height(neck_and_back(hole_rows=(1080.0, 1140.0), hole_cols=5))
+    assert np.isnan(ds[(zs > 1084) & (zs < 1136)]).all()
+
+
+def test_depth_across_gap_reads_between_the_nearest_values():
+    x = np.arange(0.0, 50.0, 5.0)
+    row = 2.0 * x
+    row[4] = np.nan
+    assert depth_across_gap(x, row, 20.0, 10.0) == 40.0  # linear between 15 and 25
+    assert depth_across_gap(x, row, 15.0, 10.0) == 30.0
+    assert np.isnan(depth_across_gap(x, row, 20.0, 5.0))  # the hole is wider than allowed
+    assert np.isnan(depth_across_gap(x, row, -1.0, 10.0)) and np.isnan(depth_across_gap(x, row, 46.0, 10.0))
