@@ -135,9 +135,9 @@ def find_vp_height(P: np.ndarray, back_mask: np.ndarray, cfg: IndicesConfig) -> 
     return z_top, "top of the back"
 
 
-def find_vp_crossing(zs: np.ndarray, depth: np.ndarray, z_neck: float) -> tuple[float, float, float] | None:
+def find_vp_crossing(zs: np.ndarray, depth: np.ndarray, z_neck: float) -> tuple[float, float, float, float] | None:
     """VP on the midline profile: where the back, coming down from the neck's hollow, has climbed half way to
-    the thoracic kyphosis's crest. Returns ``(height mm, drop mm, rise mm)`` or None.
+    the thoracic kyphosis's crest. Returns ``(height mm, drop mm, rise mm, hole mm)`` or None.
 
     The crest is the most posterior midline point within 200 mm below (and 20 mm above) the neck level
     ``z_neck``; the hollow the most anterior one within 220 mm above the crest. The half-depth level is
@@ -145,7 +145,9 @@ def find_vp_crossing(zs: np.ndarray, depth: np.ndarray, z_neck: float) -> tuple[
     point alone (the flank is nearly straight over 60-80 mm) moved by up to 18 mm between same-day re-scans.
     ``drop`` (crest minus hollow) is the evidence: a few mm of it is no neck at all. ``rise`` is how far the
     profile climbs back above the hollow (towards the occiput): 0 when the hollow is only where the seen midline
-    stops (a scan cut on the neck, hair over it), whose half-depth level then lies too low.
+    stops (a scan cut on the neck, hair over it), whose half-depth level then lies too low. ``hole`` is the
+    height between the profile's samples either side of the crossing: more than a few mm and the crossing was
+    interpolated across skin the scan did not see.
     """
     d = _smooth(depth, 2)
     ok = np.isfinite(d)
@@ -169,7 +171,7 @@ def find_vp_crossing(zs: np.ndarray, depth: np.ndarray, z_neck: float) -> tuple[
     k = int(below[0])
     f = (d[k - 1] - level) / max(d[k - 1] - d[k], 1e-9)
     rise = float(d[k_h:].max() - d[k_h])
-    return float(z[k - 1] + f * (z[k] - z[k - 1])), drop, rise
+    return float(z[k - 1] + f * (z[k] - z[k - 1])), drop, rise, float(z[k] - z[k - 1])
 
 
 def find_sp_height(zs: np.ndarray, depth: np.ndarray, z_vp: float) -> tuple[float, str, float]:
@@ -210,6 +212,10 @@ SP_MIN_RISE_MM = 3.0
 # seed 100's true surfaces (bench_bodies.py): scans cut 10-64 mm above C7 rise 0 (their VP 12-29 mm off), every
 # other scan 4.5 mm or more; on the rendered demo re-scans 0-2.5 mm on 3 bodies, 4.5 mm or more on 7
 VP_MIN_RISE_MM = 3.5
+# ... and the neck's flank seen at VP's height: the half-depth crossing interpolated across a hole in the midline
+# profile taller than this (mm, three samples) is no measurement. On a rendered demo re-scan (held-out seed 200)
+# a 32 mm hole lay across the crossing: VP came 5 mm from the same-day scan's, its depth read 20 mm lower
+VP_MAX_HOLE_MM = 12.0
 
 
 def detect_landmarks(P: np.ndarray, back_mask: np.ndarray, dmap: DepthMap, cfg: IndicesConfig) -> dict:
@@ -225,8 +231,11 @@ def detect_landmarks(P: np.ndarray, back_mask: np.ndarray, dmap: DepthMap, cfg: 
     if how_vp == "neck":
         found = find_vp_crossing(zs, ds, z_vp)
         if found is not None:
-            z_c, vp_evidence, rise = found
-            if vp_evidence >= VP_MIN_DROP_MM and rise >= VP_MIN_RISE_MM:
+            z_c, vp_evidence, rise, hole = found
+            if vp_evidence >= VP_MIN_DROP_MM and rise >= VP_MIN_RISE_MM and hole > VP_MAX_HOLE_MM:
+                # a suggestion only: the flank at VP's height was not seen
+                z_vp, how_vp = z_c, "neck flank, not seen at its height: a hole in the scan there"
+            elif vp_evidence >= VP_MIN_DROP_MM and rise >= VP_MIN_RISE_MM:
                 z_vp, how_vp, vp_conf = z_c, "neck flank", "high"
             elif vp_evidence >= VP_MIN_DROP_MM:
                 # a suggestion only: the flank's upper end is where the scan stops, not the hollow

@@ -28,7 +28,7 @@ def neck_and_back(hole_rows=None, hole_cols=1):
 def vp_height(dmap):
     cfg = IndicesConfig(grid_mm=4.0)
     zs, xs, ds = midline_profile(dmap, cfg)
-    z_vp, drop, rise = find_vp_crossing(zs, ds, 1100.0)
+    z_vp, drop, rise, hole = find_vp_crossing(zs, ds, 1100.0)
     return z_vp, zs, ds
 
 
@@ -53,3 +53,13 @@ def test_depth_across_gap_reads_between_the_nearest_values():
     assert depth_across_gap(x, row, 15.0, 10.0) == 30.0
     assert np.isnan(depth_across_gap(x, row, 20.0, 5.0))  # the hole is wider than allowed
     assert np.isnan(depth_across_gap(x, row, -1.0, 10.0)) and np.isnan(depth_across_gap(x, row, 46.0, 10.0))
+
+
+def test_vp_interpolated_across_a_wide_hole_says_so():
+    from analysis.landmarks import VP_MAX_HOLE_MM
+
+    cfg = IndicesConfig(grid_mm=4.0)
+    zs, _, ds = midline_profile(neck_and_back(), cfg)
+    assert find_vp_crossing(zs, ds, 1100.0)[3] <= VP_MAX_HOLE_MM
+    zs, _, ds = midline_profile(neck_and_back(hole_rows=(1080.0, 1140.0), hole_cols=5), cfg)
+    assert find_vp_crossing(zs, ds, 1100.0)[3] > VP_MAX_HOLE_MM
