@@ -135,9 +135,9 @@ def find_vp_height(P: np.ndarray, back_mask: np.ndarray, cfg: IndicesConfig) -> 
     return z_top, "top of the back"
 
 
-def find_vp_crossing(zs: np.ndarray, depth: np.ndarray, z_neck: float) -> tuple[float, float, float, float] | None:
+def find_vp_crossing(zs: np.ndarray, depth: np.ndarray, z_neck: float) -> tuple[float, float, float, float, float] | None:
     """VP on the midline profile: where the back, coming down from the neck's hollow, has climbed half way to
-    the thoracic kyphosis's crest. Returns ``(height mm, drop mm, rise mm, hole mm)`` or None.
+    the thoracic kyphosis's crest. Returns ``(height mm, drop mm, rise mm, hole mm, hollow mm)`` or None.
 
     The crest is the most posterior midline point within 200 mm below (and 20 mm above) the neck level
     ``z_neck``; the hollow the most anterior one within 220 mm above the crest. The half-depth level is
@@ -147,7 +147,8 @@ def find_vp_crossing(zs: np.ndarray, depth: np.ndarray, z_neck: float) -> tuple[
     profile climbs back above the hollow (towards the occiput): 0 when the hollow is only where the seen midline
     stops (a scan cut on the neck, hair over it), whose half-depth level then lies too low. ``hole`` is the
     height between the profile's samples either side of the crossing: more than a few mm and the crossing was
-    interpolated across skin the scan did not see.
+    interpolated across skin the scan did not see. ``hollow`` is the hollow's height where it lies within a
+    quarter of the drop of its deepest point: a neck's is broad, a dip in hair or a fold is narrow.
     """
     d = _smooth(depth, 2)
     ok = np.isfinite(d)
@@ -171,7 +172,12 @@ def find_vp_crossing(zs: np.ndarray, depth: np.ndarray, z_neck: float) -> tuple[
     k = int(below[0])
     f = (d[k - 1] - level) / max(d[k - 1] - d[k], 1e-9)
     rise = float(d[k_h:].max() - d[k_h])
-    return float(z[k - 1] + f * (z[k] - z[k - 1])), drop, rise, float(z[k] - z[k - 1])
+    lo, hi, quarter = k_h, k_h, d[k_h] + 0.25 * drop
+    while lo > k_c and d[lo - 1] < quarter:
+        lo -= 1
+    while hi < len(d) - 1 and d[hi + 1] < quarter:
+        hi += 1
+    return float(z[k - 1] + f * (z[k] - z[k - 1])), drop, rise, float(z[k] - z[k - 1]), float(z[hi] - z[lo])
 
 
 def find_sp_height(zs: np.ndarray, depth: np.ndarray, z_vp: float) -> tuple[float, str, float]:
@@ -216,6 +222,10 @@ VP_MIN_RISE_MM = 3.5
 # profile taller than this (mm, three samples) is no measurement. On a rendered demo re-scan (held-out seed 200)
 # a 32 mm hole lay across the crossing: VP came 5 mm from the same-day scan's, its depth read 20 mm lower
 VP_MAX_HOLE_MM = 12.0
+# ... and a hollow as tall as a neck's (mm, within a quarter of the drop of its bottom). Hair over the neck
+# leaves a narrower one: on tuning seed 100's rendered re-scans the two bodies with hair read 20-48 mm (one of
+# them placed VP 43 mm apart on its two scans), every other body's found VP 68-84 mm; the middle of that gap
+VP_MIN_HOLLOW_MM = 58.0
 
 
 def detect_landmarks(P: np.ndarray, back_mask: np.ndarray, dmap: DepthMap, cfg: IndicesConfig) -> dict:
@@ -231,10 +241,13 @@ def detect_landmarks(P: np.ndarray, back_mask: np.ndarray, dmap: DepthMap, cfg: 
     if how_vp == "neck":
         found = find_vp_crossing(zs, ds, z_vp)
         if found is not None:
-            z_c, vp_evidence, rise, hole = found
+            z_c, vp_evidence, rise, hole, hollow = found
             if vp_evidence >= VP_MIN_DROP_MM and rise >= VP_MIN_RISE_MM and hole > VP_MAX_HOLE_MM:
                 # a suggestion only: the flank at VP's height was not seen
                 z_vp, how_vp = z_c, "neck flank, not seen at its height: a hole in the scan there"
+            elif vp_evidence >= VP_MIN_DROP_MM and rise >= VP_MIN_RISE_MM and hollow < VP_MIN_HOLLOW_MM:
+                # a suggestion only: something lies on the neck (hair) or folds it
+                z_vp, how_vp = z_c, "neck flank, its hollow too narrow for a neck: hair over it or a fold"
             elif vp_evidence >= VP_MIN_DROP_MM and rise >= VP_MIN_RISE_MM:
                 z_vp, how_vp, vp_conf = z_c, "neck flank", "high"
             elif vp_evidence >= VP_MIN_DROP_MM:

@@ -28,7 +28,7 @@ def neck_and_back(hole_rows=None, hole_cols=1):
 def vp_height(dmap):
     cfg = IndicesConfig(grid_mm=4.0)
     zs, xs, ds = midline_profile(dmap, cfg)
-    z_vp, drop, rise, hole = find_vp_crossing(zs, ds, 1100.0)
+    z_vp, drop, rise, hole, hollow = find_vp_crossing(zs, ds, 1100.0)
     return z_vp, zs, ds
 
 
