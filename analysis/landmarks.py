@@ -220,7 +220,7 @@ SP_MIN_RISE_MM = 3.0
 VP_MIN_RISE_MM = 3.5
 # ... and the neck's flank seen at VP's height: the half-depth crossing interpolated across a hole in the midline
 # profile taller than this (mm, three samples) is no measurement. On a rendered demo re-scan (held-out seed 200)
-# a 32 mm hole lay across the crossing: VP came 5 mm from the same-day scan's, its depth read 20 mm lower
+# a 32 mm hole lay across the crossing: VP came 6 mm from the same-day scan's (its depth read 20 mm below it)
 VP_MAX_HOLE_MM = 12.0
 # ... and a hollow as tall as a neck's (mm, within a quarter of the drop of its bottom). Hair over the neck
 # leaves a narrower one: on tuning seed 100's rendered re-scans the two bodies with hair read 20-48 mm (one of
