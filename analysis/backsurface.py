@@ -31,8 +31,25 @@ class DepthMap:
         f = i - i0
         return (1 - f) * self.depth[i0] + f * self.depth[i1]
 
-    def at(self, xq, zq) -> float:
+    def at(self, xq, zq, max_gap_mm: float | None = None) -> float:
+        """The depth (mm) at ``xq``, ``zq``; with ``max_gap_mm``, read across missing cells up to that wide
+        (:func:`depth_across_gap`), else NaN beside any missing cell."""
+        if max_gap_mm is not None:
+            return depth_across_gap(self.x, self.row(zq), xq, max_gap_mm)
         return float(np.interp(xq, self.x, self.row(zq), left=np.nan, right=np.nan))
+
+
+def depth_across_gap(x: np.ndarray, row: np.ndarray, xq: float, max_gap_mm: float) -> float:
+    """The depth (mm) of one row of the depth map at ``xq`` (mm), linear between the nearest cells with a value
+    either side when they lie at most ``max_gap_mm`` apart; NaN beyond the row's values or across a wider hole."""
+    ok = np.isfinite(row)
+    xf, rf = x[ok], row[ok]
+    j = int(np.searchsorted(xf, xq))
+    if j < len(xf) and xf[j] == xq:
+        return float(rf[j])
+    if j == 0 or j == len(xf) or xf[j] - xf[j - 1] > max_gap_mm + 1e-9:
+        return float("nan")
+    return float(np.interp(xq, xf[j - 1:j + 1], rf[j - 1:j + 1]))
 
 
 def back_points(P: np.ndarray, N: np.ndarray, cfg: IndicesConfig) -> np.ndarray:

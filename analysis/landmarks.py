@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .backsurface import DepthMap, central_extent, smoothest_path, symmetry_costs
+from .backsurface import DepthMap, central_extent, depth_across_gap, smoothest_path, symmetry_costs
 from .config import IndicesConfig
 
 
@@ -80,7 +80,7 @@ def midline_profile(dmap: DepthMap, cfg: IndicesConfig, step_mm: float = 4.0, ce
     xs = smoothest_path(cost, off, around, cfg.symmetry_step_penalty)
     ds = nan.copy()
     for k in np.nonzero(np.isfinite(xs))[0]:
-        ds[k] = depth_across_gap(dmap.x, rows[k], xs[k], MIDLINE_GAP_CELLS * (dmap.x[1] - dmap.x[0]))
+        ds[k] = depth_across_gap(dmap.x, rows[k], xs[k], midline_gap_mm(dmap))
     return zs, xs, ds
 
 
@@ -93,17 +93,9 @@ def midline_profile(dmap: DepthMap, cfg: IndicesConfig, step_mm: float = 4.0, ce
 MIDLINE_GAP_CELLS = 3.0
 
 
-def depth_across_gap(x: np.ndarray, row: np.ndarray, xq: float, max_gap_mm: float) -> float:
-    """The depth (mm) of one row of the depth map at ``xq`` (mm), linear between the nearest cells with a value
-    either side when they lie at most ``max_gap_mm`` apart; NaN beyond the row's values or across a wider hole."""
-    ok = np.isfinite(row)
-    xf, rf = x[ok], row[ok]
-    j = int(np.searchsorted(xf, xq))
-    if j < len(xf) and xf[j] == xq:
-        return float(rf[j])
-    if j == 0 or j == len(xf) or xf[j] - xf[j - 1] > max_gap_mm + 1e-9:
-        return float("nan")
-    return float(np.interp(xq, xf[j - 1:j + 1], rf[j - 1:j + 1]))
+def midline_gap_mm(dmap: DepthMap) -> float:
+    """The widest hole (mm) read across on the line of symmetry: ``MIDLINE_GAP_CELLS`` of the map's cells."""
+    return MIDLINE_GAP_CELLS * float(dmap.x[1] - dmap.x[0])
 
 
 def _smooth(v, n=3):
@@ -228,6 +220,20 @@ VP_MAX_HOLE_MM = 12.0
 VP_MIN_HOLLOW_MM = 58.0
 
 
+def vp_flank_verdict(drop: float, rise: float, hole: float, hollow: float) -> tuple[str, str] | None:
+    """``(confidence, method)`` of VP at the neck flank's crossing (:func:`find_vp_crossing`'s figures, mm), or
+    None where the drop is too small for a neck (VP stays at the neck level)."""
+    if drop < VP_MIN_DROP_MM:
+        return None
+    if rise < VP_MIN_RISE_MM:  # the flank's upper end is where the scan stops, not the hollow
+        return "low", "neck flank, its hollow not seen: the scan stops on the neck or hair covers it"
+    if hole > VP_MAX_HOLE_MM:  # the flank at VP's height was not seen
+        return "low", "neck flank, not seen at its height: a hole in the scan there"
+    if hollow < VP_MIN_HOLLOW_MM:  # something lies on the neck (hair) or folds it
+        return "low", "neck flank, its hollow too narrow for a neck: hair over it or a fold"
+    return "high", "neck flank"
+
+
 def detect_landmarks(P: np.ndarray, back_mask: np.ndarray, dmap: DepthMap, cfg: IndicesConfig) -> dict:
     """VP and SP (patient frame, mm) on the back's symmetry line, with how each was found and its confidence.
 
@@ -242,17 +248,9 @@ def detect_landmarks(P: np.ndarray, back_mask: np.ndarray, dmap: DepthMap, cfg: 
         found = find_vp_crossing(zs, ds, z_vp)
         if found is not None:
             z_c, vp_evidence, rise, hole, hollow = found
-            if vp_evidence >= VP_MIN_DROP_MM and rise >= VP_MIN_RISE_MM and hole > VP_MAX_HOLE_MM:
-                # a suggestion only: the flank at VP's height was not seen
-                z_vp, how_vp = z_c, "neck flank, not seen at its height: a hole in the scan there"
-            elif vp_evidence >= VP_MIN_DROP_MM and rise >= VP_MIN_RISE_MM and hollow < VP_MIN_HOLLOW_MM:
-                # a suggestion only: something lies on the neck (hair) or folds it
-                z_vp, how_vp = z_c, "neck flank, its hollow too narrow for a neck: hair over it or a fold"
-            elif vp_evidence >= VP_MIN_DROP_MM and rise >= VP_MIN_RISE_MM:
-                z_vp, how_vp, vp_conf = z_c, "neck flank", "high"
-            elif vp_evidence >= VP_MIN_DROP_MM:
-                # a suggestion only: the flank's upper end is where the scan stops, not the hollow
-                z_vp, how_vp = z_c, "neck flank, its hollow not seen: the scan stops on the neck or hair covers it"
+            verdict = vp_flank_verdict(vp_evidence, rise, hole, hollow)
+            if verdict is not None:
+                z_vp, (vp_conf, how_vp) = z_c, verdict
     seen = zs[np.isfinite(ds)]
     if len(seen) and z_vp > seen.max():
         # the back's midline is not seen up to the neck (a sparse surface): VP at the highest midline point seen
@@ -286,9 +284,8 @@ def point_on_midline(dmap: DepthMap, z: float, xs=None, zs=None, cfg=None, below
         x0 = float(np.interp(zq, zs[ok], xs[ok]))
     else:
         x0 = 0.0
-    gap = MIDLINE_GAP_CELLS * (dmap.x[1] - dmap.x[0])
     for dz in (0.0, z - zq, 20.0, 30.0, 40.0):
-        y = depth_across_gap(dmap.x, dmap.row(z - dz), x0, gap)
+        y = dmap.at(x0, z - dz, midline_gap_mm(dmap))
         if np.isfinite(y):
             break
     return np.array([x0, y, z])

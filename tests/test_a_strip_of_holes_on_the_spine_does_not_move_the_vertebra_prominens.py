@@ -4,9 +4,9 @@ and VP, interpolated in height from 30 mm away, moved 6 mm between two same-day 
 
 import numpy as np
 
-from analysis.backsurface import DepthMap
+from analysis.backsurface import DepthMap, depth_across_gap
 from analysis.config import IndicesConfig
-from analysis.landmarks import depth_across_gap, find_vp_crossing, midline_profile
+from analysis.landmarks import VP_MAX_HOLE_MM, find_vp_crossing, midline_profile, vp_flank_verdict
 
 
 def neck_and_back(hole_rows=None, hole_cols=1):
@@ -25,11 +25,15 @@ def neck_and_back(hole_rows=None, hole_cols=1):
     return DepthMap(x, z, depth)
 
 
+def crossing(dmap):
+    """The midline profile's heights and depths, and :func:`find_vp_crossing`'s figures on it."""
+    zs, _, ds = midline_profile(dmap, IndicesConfig(grid_mm=4.0))
+    return zs, ds, find_vp_crossing(zs, ds, 1100.0)
+
+
 def vp_height(dmap):
-    cfg = IndicesConfig(grid_mm=4.0)
-    zs, xs, ds = midline_profile(dmap, cfg)
-    z_vp, drop, rise, hole, hollow = find_vp_crossing(zs, ds, 1100.0)
-    return z_vp, zs, ds
+    zs, ds, found = crossing(dmap)
+    return found[0], zs, ds
 
 
 def test_a_one_cell_strip_across_the_flank_leaves_vp_where_it_was():
@@ -56,10 +60,19 @@ def test_depth_across_gap_reads_between_the_nearest_values():
 
 
 def test_vp_interpolated_across_a_wide_hole_says_so():
-    from analysis.landmarks import VP_MAX_HOLE_MM
+    assert crossing(neck_and_back())[2][3] <= VP_MAX_HOLE_MM
+    found = crossing(neck_and_back(hole_rows=(1080.0, 1140.0), hole_cols=5))[2]
+    assert found[3] > VP_MAX_HOLE_MM
+    assert vp_flank_verdict(*found[1:]) == ("low", "neck flank, not seen at its height: a hole in the scan there")
 
-    cfg = IndicesConfig(grid_mm=4.0)
-    zs, _, ds = midline_profile(neck_and_back(), cfg)
-    assert find_vp_crossing(zs, ds, 1100.0)[3] <= VP_MAX_HOLE_MM
-    zs, _, ds = midline_profile(neck_and_back(hole_rows=(1080.0, 1140.0), hole_cols=5), cfg)
-    assert find_vp_crossing(zs, ds, 1100.0)[3] > VP_MAX_HOLE_MM
+
+def test_a_neck_hollow_is_trusted_and_a_narrow_dip_is_not():
+    # the intact neck's hollow is broad; a dip 12 mm tall and 25 mm deep above the flank (hair, a fold) is not
+    _, _, neck = crossing(neck_and_back())
+    assert vp_flank_verdict(*neck[1:]) == ("high", "neck flank")
+    dmap = neck_and_back()
+    dip = 25.0 * np.exp(-0.5 * ((dmap.z - 1180.0) / 5.0) ** 2)
+    dmap = DepthMap(dmap.x, dmap.z, dmap.depth - dip[:, None])
+    _, _, found = crossing(dmap)
+    assert found[4] < neck[4]
+    assert vp_flank_verdict(*found[1:])[0] == "low" and "too narrow" in vp_flank_verdict(*found[1:])[1]
