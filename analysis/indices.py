@@ -30,7 +30,7 @@ import numpy as np
 from .backsurface import DepthMap, back_points, central_extent, depth_map, prominence_difference, slope_at
 from .config import AnalysisConfig, IndicesConfig, RigidConfig
 from .frame import PatientFrame, detect_posterior, frame_from_posterior, symmetry_plane
-from .landmarks import broad_slope, detect_landmarks, find_dimples, sagittal_inclination
+from .landmarks import broad_slope, detect_landmarks, find_dimples, marked_point, sagittal_inclination
 from .profiles import cobb_estimate, pelvic_figures, sagittal_angles
 from .torso import PlaneIndex, Torso
 
@@ -306,9 +306,7 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
             v = (landmarks or {}).get(k)
             if v is None:
                 continue
-            q = frame.to_patient(np.asarray(v, float).reshape(3))
-            y = dmap.at(q[0], q[2])
-            lm[k] = np.array([q[0], y if np.isfinite(y) else q[1], q[2]])
+            lm[k] = marked_point(dmap, frame.to_patient(np.asarray(v, float).reshape(3)))
             source[k] = "clinician"
 
     corrected(CORE_LANDMARKS)

@@ -98,6 +98,16 @@ def midline_gap_mm(dmap: DepthMap) -> float:
     return MIDLINE_GAP_CELLS * float(dmap.x[1] - dmap.x[0])
 
 
+def marked_point(dmap: DepthMap, q: np.ndarray) -> np.ndarray:
+    """A clinician's mark ``q`` (patient frame, mm) put on the back's depth map: the map's depth at its x and
+    height, read across a hole as narrow as the midline's (:func:`midline_gap_mm`) so that a mark beside a
+    strip of missing cells sits on the same surface as the automatic landmarks; the click's own depth where the
+    map has none. Returns a new array (x, depth, height)."""
+    q = np.asarray(q, float).reshape(3)
+    y = dmap.at(q[0], q[2], midline_gap_mm(dmap))
+    return np.array([q[0], y if np.isfinite(y) else q[1], q[2]])
+
+
 def _smooth(v, n=3):
     out = v.copy()
     good = np.isfinite(v)

@@ -6,7 +6,7 @@ import numpy as np
 
 from analysis.backsurface import DepthMap, depth_across_gap
 from analysis.config import IndicesConfig
-from analysis.landmarks import VP_MAX_HOLE_MM, find_vp_crossing, midline_profile, vp_flank_verdict
+from analysis.landmarks import VP_MAX_HOLE_MM, find_vp_crossing, marked_point, midline_profile, vp_flank_verdict
 
 
 def neck_and_back(hole_rows=None, hole_cols=1):
@@ -76,3 +76,14 @@ def test_a_neck_hollow_is_trusted_and_a_narrow_dip_is_not():
     _, _, found = crossing(dmap)
     assert found[4] < neck[4]
     assert vp_flank_verdict(*found[1:])[0] == "low" and "too narrow" in vp_flank_verdict(*found[1:])[1]
+
+
+def test_a_mark_beside_a_strip_of_holes_sits_on_the_map_not_at_the_clicks_depth():
+    # the clinician clicks VP on the displayed mesh, 1.5 mm off the map's surface, where one cell is missing
+    dmap = neck_and_back(hole_rows=(1080.0, 1140.0))
+    on_map = neck_and_back().at(0.0, 1110.0)
+    placed = marked_point(dmap, np.array([0.0, on_map + 1.5, 1110.0]))
+    assert abs(placed[1] - on_map) < 0.05
+    # beyond the map (no depth within a midline's hole) the click's own depth is kept
+    wide = neck_and_back(hole_rows=(1080.0, 1140.0), hole_cols=5)
+    assert marked_point(wide, np.array([0.0, 42.0, 1110.0]))[1] == 42.0
