@@ -143,6 +143,10 @@ def add_commands(sub) -> None:
     p.add_argument("--calibration", required=True)
     p.add_argument("--out", required=True, help="folder for torso.ply, torso-mesh.ply and report.json")
     p.add_argument("--force", action="store_true", help="write into OUT even if it holds files")
+    p.add_argument("--arm-workers", type=int, default=0, metavar="N",
+                   help="arms reconstructed at once, each in its own process (default 0: one per core); 1 "
+                        "reconstructs them one after the other in this process, with every core, in about half "
+                        "the memory (docs/benchmarks.md, the whole visit)")
     p.add_argument("capture", metavar="CAPTURE", help="torso capture bundle (folder or .zip)")
     p.set_defaults(func=_cmd_reconstruct)
 
@@ -203,15 +207,18 @@ def _cmd_reconstruct_arm(args) -> int:
 
 def _cmd_reconstruct(args) -> int:
     from . import parallel
-    from .reconstruction import reconstruct_torso
+    from .reconstruction import TorsoConfig, reconstruct_torso
     from .results import write_torso
 
+    if args.arm_workers < 0:
+        raise ValueError(f"--arm-workers is {args.arm_workers}: give 0 (one process per core) or more")
     parallel.reuse_freed_images()  # this process is ours: full-size images are freed and allocated again
     rig, calibration, capture = _torso_inputs(args)
     out = Path(args.out)
     if out.exists() and any(out.iterdir()) and not args.force:
         raise FileExistsError(f"{out}: already exists and is not empty (use --force to replace its files)")
-    result = reconstruct_torso(capture, rig, calibration, progress=lambda m: print(f"  {m}", flush=True))
+    cfg = TorsoConfig(arm_workers=args.arm_workers)
+    result = reconstruct_torso(capture, rig, calibration, cfg, progress=lambda m: print(f"  {m}", flush=True))
     write_torso(out, result)
     rep = result["report"]
     print(f"torso: {rep['points']} points, mesh {rep['mesh']['faces']} faces, {rep['seconds']['total']:.1f} s")
