@@ -216,7 +216,9 @@ def main() -> int:
     def row(name, k, fmt, target):
         return f"| {name} | {fmt.format(ours[k])} | {fmt.format(theirs[k])} | {target} |"
 
-    print(f"\n## Calibration ({json.loads((base / 'truth' / 'scenario.json').read_text())['config']['preset']} preset)\n")
+    meta = base / "truth" / "scenario.json"
+    preset_name = json.loads(meta.read_text())["config"]["preset"] if meta.exists() else "unknown"
+    print(f"\n## Calibration ({preset_name} preset)\n")
     print(f"Machine: {raw['machine']}\n")
     print(f"{len(calib.cameras)} cameras, {len(caps)} test-field poses, {report.observations} corner coordinates pairs.")
     print(f"Full rig calibration (measurement, two adjustment passes): {t_ours:.0f} s, peak RSS {peak:.0f} MiB.\n")
