@@ -212,7 +212,11 @@ def _cmd_reconstruct(args) -> int:
 
     if args.arm_workers < 0:
         raise ValueError(f"--arm-workers is {args.arm_workers}: give 0 (one process per core) or more")
-    parallel.reuse_freed_images()  # this process is ours: full-size images are freed and allocated again
+    if args.arm_workers == 1:
+        # the arms in this process to save memory: blocks above 4 MB go back to the system when freed
+        parallel.reuse_freed_images(mmap_threshold=4 << 20, trim_threshold=32 << 20)
+    else:
+        parallel.reuse_freed_images()  # this process is ours: full-size images are freed and allocated again
     rig, calibration, capture = _torso_inputs(args)
     out = Path(args.out)
     if out.exists() and any(out.iterdir()) and not args.force:
