@@ -145,8 +145,9 @@ def add_commands(sub) -> None:
     p.add_argument("--force", action="store_true", help="write into OUT even if it holds files")
     p.add_argument("--arm-workers", type=int, default=0, metavar="N",
                    help="arms reconstructed at once, each in its own process (default 0: one per core); 1 "
-                        "reconstructs them one after the other in this process, with every core, in about half "
-                        "the memory (docs/benchmarks.md, the whole visit)")
+                        "reconstructs them one after the other in this process, with every core: at paper scale "
+                        "0.81 GB at most instead of 2.1-2.3 GB, for 12-40%% more time (docs/benchmarks.md, "
+                        "the whole visit)")
     p.add_argument("capture", metavar="CAPTURE", help="torso capture bundle (folder or .zip)")
     p.set_defaults(func=_cmd_reconstruct)
 
