@@ -48,3 +48,32 @@ def reuse_freed_images(mmap_threshold: int = 512 << 20, trim_threshold: int = 1 
         return False
     return bool(mallopt(_M_MMAP_THRESHOLD, int(mmap_threshold))) and bool(mallopt(_M_TRIM_THRESHOLD,
                                                                                      int(trim_threshold)))
+
+
+_PR_SET_PDEATHSIG = 1  # prctl option (linux/prctl.h)
+
+
+def die_with_parent() -> bool:
+    """Have the kernel end this process (SIGTERM) when the process that started it dies (Linux; False
+    elsewhere).
+
+    For the engine's own worker processes only, called at their start: a killed ``torsoscan reconstruct`` or
+    ``simulate`` would otherwise leave its spawned workers computing with no one to read their results (seen:
+    render workers going on for minutes after their command was killed). The signal follows the thread that
+    started the worker, so the pools that use it are created and shut down within one call."""
+    import ctypes
+    import ctypes.util
+    import multiprocessing
+    import signal
+
+    # the process that started this one: a worker may start after its parent has already died
+    started_by = multiprocessing.parent_process()
+    parent = started_by.pid if started_by is not None else os.getppid()
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        ok = libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+    if ok and os.getppid() != parent:  # the parent died before the call: nothing will signal us
+        os.kill(os.getpid(), signal.SIGTERM)
+    return ok

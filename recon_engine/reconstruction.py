@@ -24,7 +24,7 @@ from .features import local_contrast
 from .formats import Calibration, Capture, FormatError, Rig, load_image
 from .kernels import warm_up
 from .multiview import IntersectionConfig, intersect
-from .parallel import cores, reuse_freed_images
+from .parallel import cores, die_with_parent, reuse_freed_images
 from .registration import (ICPatchConfig, Transform, chain_initial, multi_surface_registration, pair_fit,
                            patch_indices, weak_arms)
 from .surface import (PointSurface, flank_faces, in_patches, make_surface, off_surface, off_surface_again,
@@ -378,6 +378,7 @@ def _init_arm_worker(messages):
     # these processes are the engine's own, started and ended by _arms_in_processes: tuning their allocator
     # changes no caller's process (unlike reconstruct_arm in the caller's process, which must leave it alone)
     reuse_freed_images()
+    die_with_parent()
 
 
 def _arm_in_worker(capture, rig, calibration, arm, cfg):
