@@ -38,6 +38,8 @@ COST_S = {
     "test_analysis_compare.py": 33, "test_api_rejects_bad_fields.py": 29, "test_analysis_cli.py": 26,
     "test_registration_rims.py": 26, "test_history_headline.py": 25, "test_same_day_rescan_comparison.py": 24,
     "test_bundle_sparse.py": 24, "test_browser_comparison.py": 21, "test_backup_restore.py": 20,
+    # measured alone on 2026-12-06 (Intel Xeon): the benchmarks' smoke tests
+    "test_bench_service_runs.py": 20, "test_bench_visit_runs.py": 18,
 }
 
 

@@ -139,3 +139,25 @@ def test_the_torso_file_carries_where_the_patients_back_faces(torso_out):
     assert np.asarray(rep["patient"]["posterior"]) @ [0.0, 1.0, 0.0] > 0.99
     torso = read_torso(torso_out / "torso.ply")
     assert torso.patient["back_towards"] == ["A", "B"] and torso.patient["posterior"][1] > 0.99
+
+
+def test_arms_one_after_another_give_the_same_torso(torso_scenario, torso_out, tmp_path, capsys):
+    # --arm-workers 1, for a server short of memory: the arms in turn in the command's own process
+    rc = main(["reconstruct", "--rig", str(torso_scenario / "rig.json"),
+               "--calibration", str(torso_scenario / "truth" / "calibration.json"), "--arm-workers", "1",
+               "--out", str(tmp_path / "serial"), str(torso_scenario / "captures" / "visit0-a")])
+    assert rc == 0
+    assert "processes" not in capsys.readouterr().out
+    a = read_ply(torso_out / "torso.ply")["points"]
+    b = read_ply(tmp_path / "serial" / "torso.ply")["points"]
+    assert len(a) == len(b)
+    assert np.abs(np.sort(a, axis=0) - np.sort(b, axis=0)).max() < 1e-3  # mm
+
+
+def test_it_rejects_a_negative_number_of_arm_workers(torso_scenario, tmp_path, capsys):
+    rc = main(["reconstruct", "--rig", str(torso_scenario / "rig.json"),
+               "--calibration", str(torso_scenario / "truth" / "calibration.json"), "--arm-workers", "-1",
+               "--out", str(tmp_path / "out"), str(torso_scenario / "captures" / "visit0-a")])
+    assert rc == 2
+    assert "--arm-workers is -1" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
