@@ -39,9 +39,8 @@ from recon_engine.simulator.config import preset  # noqa: E402
 from recon_engine.simulator.scenario import simulate  # noqa: E402
 from recon_engine.stability import compare_calibrations  # noqa: E402
 
-from bench_lens import image_error_vs_true_lens, model_fit, rotation_error_deg  # noqa: E402
+from bench_lens import against_model_fit, image_error_vs_true_lens  # noqa: E402
 from provenance import provenance  # noqa: E402
-from recon_engine.bundle import rodrigues  # noqa: E402
 from recon_engine.simulator import lens as L  # noqa: E402
 
 DISTURBANCE = (("A3", "pd", 0.001), ("C2", "pp_x", 2.0))
@@ -125,9 +124,9 @@ def figures(calib, truth, pts):
         row = compare_cameras(e, t, pts)
         row["image_rms_vs_engine_terms_px"] = row["image_rms_px"]
         row["image_rms_px"] = image_error_vs_true_lens(e, t, lenses[c], pts)
-        fit = model_fit(lenses[c], t.width, t.height, False)
-        row["principal_point_vs_model_fit_px"] = float(np.hypot(e.cx - fit["cx"], e.cy - fit["cy"]))
-        row["rotation_vs_model_fit_deg"] = rotation_error_deg(e.R, rodrigues(np.array(fit["rotation_rad"])) @ t.R)
+        vs = against_model_fit(e, t, lenses[c])
+        row["principal_point_vs_model_fit_px"] = vs["principal_point_vs_model_fit_px"]
+        row["rotation_vs_model_fit_deg"] = vs["rotation_vs_model_fit_deg"]
         rows[c] = row
     keys = ("image_rms_px", "image_rms_vs_engine_terms_px", "principal_distance_rel", "principal_point_px",
             "principal_point_vs_model_fit_px", "centre_mm", "rotation_deg", "rotation_vs_model_fit_deg")

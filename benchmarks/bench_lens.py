@@ -52,6 +52,8 @@ from scipy.optimize import least_squares
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from analysis.rigid import rotation_angle_deg  # noqa: E402
+from recon_engine.bundle import rodrigues  # noqa: E402
 from recon_engine.calibration import CalibrationConfig, calibrate, working_volume_points  # noqa: E402
 from recon_engine.camera import camera_depth  # noqa: E402
 from recon_engine.formats import read_calibration, read_capture, read_rig, read_testfield  # noqa: E402
@@ -154,10 +156,16 @@ def model_fit(lens: L.Lens, width: int, height: int, free_k3: bool, n: int = 41)
             "cx": float(sol.x[2]), "cy": float(sol.x[3]), "rotation_rad": sol.x[9:12].tolist()}
 
 
-def rotation_error_deg(R_est: np.ndarray, R_ref: np.ndarray) -> float:
-    """Angle (deg) of the rotation between two world->camera rotations."""
-    c = (np.trace(R_est @ R_ref.T) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+def against_model_fit(est, true_cam, lens: L.Lens, free_k3: bool = False) -> dict:
+    """An estimated camera's principal point (px) and rotation (deg) against the true camera's own values and
+    against the engine model's nearest description of its lens (:func:`model_fit`: the fit's principal point,
+    and the true rotation turned by the fit's small rotation)."""
+    fit = model_fit(lens, true_cam.width, true_cam.height, free_k3)
+    R_fit = rodrigues(np.array(fit["rotation_rad"])) @ true_cam.R
+    return {"principal_point_px": float(np.hypot(est.cx - true_cam.cx, est.cy - true_cam.cy)),
+            "rotation_deg": rotation_angle_deg(est.R @ true_cam.R.T),
+            "principal_point_vs_model_fit_px": float(np.hypot(est.cx - fit["cx"], est.cy - fit["cy"])),
+            "rotation_vs_model_fit_deg": rotation_angle_deg(est.R @ R_fit.T)}
 
 
 def model_fits(seeds) -> dict:
@@ -244,14 +252,10 @@ def synthetic_paper(seed: int, lens: str, free_k3: bool = False, noise_px: float
     res = np.array([np.sqrt(np.mean(sol.residuals[(pb.cam == i) & sol.inlier] ** 2)) for i in range(len(cam_ids))])
     # principal point and rotation against the true lens's own values, and against the engine model's nearest
     # description of the true lens (model_fit: its principal point, and the true rotation turned by the fit's)
-    pp, rot, pp_model, rot_model = [], [], [], []
-    for c in cam_ids:
-        t, e = truth.cameras[c], est[c]
-        fit = model_fit(truth.lenses[c], cc.width, cc.height, free_k3)
-        pp.append(np.hypot(e.cx - t.cx, e.cy - t.cy))
-        rot.append(rotation_error_deg(e.R, t.R))
-        pp_model.append(np.hypot(e.cx - fit["cx"], e.cy - fit["cy"]))
-        rot_model.append(rotation_error_deg(e.R, bundle.rodrigues(np.array(fit["rotation_rad"])) @ t.R))
+    vs = [against_model_fit(est[c], truth.cameras[c], truth.lenses[c], free_k3) for c in cam_ids]
+    pp, rot, pp_model, rot_model = ([v[k] for v in vs] for k in ("principal_point_px", "rotation_deg",
+                                                                 "principal_point_vs_model_fit_px",
+                                                                 "rotation_vs_model_fit_deg"))
     pts = working_volume_points(centre=(0.0, 0.0, 1100.0), n=4000)
     img = [image_error_vs_true_lens(est[c], truth.cameras[c], truth.lenses[c], pts) for c in cam_ids]
     # 3D: each arm's cameras intersect the working-volume points they see (true-lens pixels, estimated rays)

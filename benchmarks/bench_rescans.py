@@ -40,7 +40,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from analysis.indices import CORE_LANDMARKS  # noqa: E402
 from analysis.repeatability import (APEX_FIGURES, INDEX_FIGURES, PELVIC_FIGURES, flatten, index_changes,  # noqa: E402
-                                    mdc_from_index_pairs, scanner_mdc_from)
+                                    mdc_from_index_pairs, placed_differently, scanner_mdc_from)
 from analysis.torso import read_torso  # noqa: E402
 from bench_bodies import analyse_as_clinic, draw_body  # noqa: E402
 from provenance import provenance  # noqa: E402
@@ -179,8 +179,10 @@ def change_over_mdc(rescans: list, mdc: dict) -> dict:
             continue
         ratios = []
         for pair in rescans:
-            conf = [pair["landmarks"][n] or {} for n in ("visit0-a", "visit0-b")]
-            mixed = any((conf[0].get(lm) == "clinician") != (conf[1].get(lm) == "clinician") for lm in CORE_LANDMARKS)
+            # the summary keeps each scan's landmark confidences: "clinician" where a clinician marked it
+            a, b = ({"landmarks": {lm: {"source": c} for lm, c in (pair["landmarks"][n] or {}).items() if c}}
+                    for n in ("visit0-a", "visit0-b"))
+            mixed = placed_differently(a, b)
             if k in pair["changes"] and not (mixed and k not in APEX_FIGURES + PELVIC_FIGURES):
                 ratios.append(abs(pair["changes"][k]) / m)
         if ratios:

@@ -22,6 +22,14 @@ def cores(requested: int = 0) -> int:
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters (malloc.h)
 
 
+def _libc():
+    """The C library (ctypes); OSError where there is none to load."""
+    import ctypes
+    import ctypes.util
+
+    return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+
+
 def reuse_freed_images(mmap_threshold: int = 512 << 20, trim_threshold: int = 1 << 30) -> bool:
     """Let glibc's allocator keep freed large blocks for reuse (process-wide; False where it is not glibc).
 
@@ -38,12 +46,8 @@ def reuse_freed_images(mmap_threshold: int = 512 << 20, trim_threshold: int = 1 
     command line's reconstruction commands and the benchmarks opt in at
     their entry point, and the engine's own arm processes at their start.
     """
-    import ctypes
-    import ctypes.util
-
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
+        mallopt = _libc().mallopt
     except (OSError, AttributeError):
         return False
     return bool(mallopt(_M_MMAP_THRESHOLD, int(mmap_threshold))) and bool(mallopt(_M_TRIM_THRESHOLD,
@@ -61,8 +65,6 @@ def die_with_parent() -> bool:
     ``simulate`` would otherwise leave its spawned workers computing with no one to read their results (seen:
     render workers going on for minutes after their command was killed). The signal follows the thread that
     started the worker, so the pools that use it are created and shut down within one call."""
-    import ctypes
-    import ctypes.util
     import multiprocessing
     import signal
 
@@ -70,8 +72,7 @@ def die_with_parent() -> bool:
     started_by = multiprocessing.parent_process()
     parent = started_by.pid if started_by is not None else os.getppid()
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-        ok = libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0) == 0
+        ok = _libc().prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0) == 0
     except (OSError, AttributeError):
         return False
     if ok and os.getppid() != parent:  # the parent died before the call: nothing will signal us
