@@ -37,7 +37,7 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, region: np.ndarray
     the whole mesh, within ``max_incidence_deg`` of its normal. Then Gaussian noise of
     ``noise_mm`` along the normal. Returns a :class:`Torso` with outward normals.
     """
-    import open3d as o3d
+    from recon_engine.o3d import o3d
 
     rng = np.random.default_rng(seed)
     V, T = np.asarray(vertices, float), np.asarray(triangles, np.int64)

@@ -102,7 +102,7 @@ def orient_consistently(points: np.ndarray, normals: np.ndarray, k: int = 12) ->
     Falls back to :func:`orient_outward` (away from the trunk's vertical axis) if the propagation fails.
     """
     try:
-        import open3d as o3d
+        from recon_engine.o3d import o3d
 
         pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
         pc.normals = o3d.utility.Vector3dVector(orient_outward(points, normals))

@@ -30,11 +30,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from recon_engine.o3d import o3d  # noqa: E402
 
 from recon_engine.formats import read_calibration, read_capture, read_rig  # noqa: E402
 from recon_engine.parallel import reuse_freed_images  # noqa: E402

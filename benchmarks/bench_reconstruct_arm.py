@@ -38,11 +38,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from recon_engine.o3d import o3d  # noqa: E402
 
 from recon_engine.epipolar import rectify_pair, rig_centre, subject_depth_bounds  # noqa: E402
 from recon_engine.features import region_of_interest  # noqa: E402

@@ -23,10 +23,10 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from recon_engine.o3d import o3d  # noqa: E402
 
 from recon_engine.formats import read_calibration, read_rig  # noqa: E402
 from recon_engine.reconstruction import TorsoConfig, register_arms  # noqa: E402

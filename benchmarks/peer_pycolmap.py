@@ -217,7 +217,7 @@ def _main():
     import sys
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    import open3d as o3d
+    from recon_engine.o3d import o3d
 
     from recon_engine.formats import load_image, read_calibration, read_capture, read_rig
 

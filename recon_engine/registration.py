@@ -151,7 +151,7 @@ class PatchIndex:
             if keep.sum() >= 3:
                 surface = PointSurface(surface.points, surface.normals, F0[keep], surface.data)
         self.surface = surface
-        import open3d as o3d  # here, not at the top: the engine's arm processes import this module but never
+        from .o3d import o3d  # here, not at the top: the engine's arm processes import this module but never
         # register, and Open3D costs each of them 90 MB
 
         mesh = o3d.t.geometry.TriangleMesh()
@@ -200,7 +200,7 @@ class PatchIndex:
         if len(x) == 0:
             z = np.zeros((0, 3))
             return np.zeros(0, np.int64), np.zeros(0, bool), z, z, np.zeros(0)
-        import open3d as o3d  # loaded by __init__ already
+        from .o3d import o3d  # loaded by __init__ already
 
         ans = self.scene.compute_closest_points(o3d.core.Tensor(np.asarray(x, np.float32)))
         gap = np.linalg.norm(np.asarray(x, dtype=float) - ans["points"].numpy(), axis=1)

@@ -14,7 +14,7 @@ from recon_engine.matching import MatchingConfig, least_squares_refine, match_po
 
 @pytest.fixture(scope="module")
 def pair_data(torso_scenario):
-    import open3d as o3d
+    from recon_engine.o3d import o3d
 
     rig = read_rig(torso_scenario / "rig.json")
     cal = read_calibration(torso_scenario / "truth" / "visit0-a" / "calibration.json")

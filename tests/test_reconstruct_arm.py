@@ -4,7 +4,7 @@ import json
 
 import cv2
 import numpy as np
-import open3d as o3d
+from recon_engine.o3d import o3d
 import pytest
 
 from .truth import truth_scene

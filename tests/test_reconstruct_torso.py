@@ -3,7 +3,7 @@
 import json
 
 import numpy as np
-import open3d as o3d
+from recon_engine.o3d import o3d
 import pytest
 
 from recon_engine.cli import main

@@ -74,7 +74,7 @@ def _segment_distance(P, a, b):
 @functools.lru_cache(maxsize=4)
 def load_makehuman(stature_mm: float = 1550.0, subdivisions: int = 2, path: str | None = None) -> Body:
     """The MakeHuman body scaled to ``stature_mm``, Loop-subdivided ``subdivisions`` times."""
-    import open3d as o3d
+    from ..o3d import o3d
 
     src = Path(path) if path else mesh_path()
     if not src.exists():
@@ -264,7 +264,7 @@ def back_hits(V: np.ndarray, triangles: np.ndarray, xz: np.ndarray):
 
     Returns ``(triangle index (K,), barycentric weights (K, 3))``; a ray that misses has weights NaN.
     """
-    import open3d as o3d
+    from ..o3d import o3d
 
     mesh = o3d.t.geometry.TriangleMesh()
     mesh.vertex.positions = o3d.core.Tensor(V.astype(np.float32))

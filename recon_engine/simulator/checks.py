@@ -82,7 +82,7 @@ def neighbour_ncc(scenario: str | Path, capture: str, half: int | None = None,
     (the first patch's pixels carried through the surface's tangent plane).
     Returns ``{"A1-A2": median, ...}``.
     """
-    import open3d as o3d
+    from ..o3d import o3d
 
     out = Path(scenario)
     rig = read_rig(out / "rig.json")

@@ -53,7 +53,7 @@ def posed_subject(cfg: ScenarioConfig, capture: str | None = None, posture: Post
     V, spine = pose_body(body, cfg.subject, posture)
     posterior = posture.R @ np.array([0.0, 1.0, 0.0])
     landmarks = {}
-    import open3d as o3d
+    from ..o3d import o3d
 
     mesh = o3d.t.geometry.TriangleMesh()
     mesh.vertex.positions = o3d.core.Tensor(V.astype(np.float32))
@@ -79,7 +79,7 @@ def posed_subject(cfg: ScenarioConfig, capture: str | None = None, posture: Post
 
 def _symmetry_line(body, V_posed: np.ndarray, n: int = 101) -> np.ndarray:
     """Posed skin points (L, 3) that lie straight behind the rest body's spine (+Y) from sacrum to C7."""
-    import open3d as o3d
+    from ..o3d import o3d
 
     mesh = o3d.t.geometry.TriangleMesh()
     mesh.vertex.positions = o3d.core.Tensor(body.vertices.astype(np.float32))

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-import open3d as o3d
+from ..o3d import o3d
 
 from ..camera import Camera
 from ..imaging import sample_bilinear

@@ -66,7 +66,7 @@ def _tower_surface(tower: Tower, pose) -> Surface:
 
 
 def _write_ply(path: Path, vertices: np.ndarray, triangles: np.ndarray) -> None:
-    import open3d as o3d
+    from ..o3d import o3d
 
     mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(triangles))
     mesh.remove_unreferenced_vertices()

@@ -153,7 +153,7 @@ def clothe(body: Body, cond: ConditionsConfig) -> Body:
     """The body with the underwear's fabric over the skin below its top edge (``FABRIC_MM`` outwards)."""
     if cond.underwear_top_mm is None:
         return body
-    import open3d as o3d
+    from ..o3d import o3d
 
     mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(body.vertices),
                                      o3d.utility.Vector3iVector(body.triangles))
