@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from recon_engine.o3d import o3d  # noqa: E402
 
 from recon_engine.formats import read_calibration, read_capture, read_rig  # noqa: E402
-from recon_engine.parallel import reuse_freed_images  # noqa: E402
+from recon_engine.parallel import return_freed_images  # noqa: E402
 from recon_engine.reconstruction import TorsoConfig, reconstruct_torso, register_arms  # noqa: E402
 from recon_engine.registration import ICPatchConfig, Transform, pair_fit  # noqa: E402
 from recon_engine.surface import in_patches  # noqa: E402
@@ -208,7 +208,7 @@ def main() -> int:
     ap.add_argument("--keep-surfaces", action="store_true",
                     help="pickle each capture's arm surfaces and reports to bench-out/surfaces-<capture>.pkl")
     args = ap.parse_args()
-    reuse_freed_images()  # as the command line does: the figures are the CLI's
+    return_freed_images()  # as `torsoscan reconstruct` does: the figures are the command's
     run = provenance(__file__)
     runs = {c: run_capture(args, c) for c in args.capture}
     # per method: the mean over every displaced arm of every capture

@@ -3,8 +3,9 @@
     .venv/bin/python benchmarks/bench_visit.py --scenario bench-out/paper-s33 \\
         --calibration bench-out/paper-s33-calibration.json --arm-workers 0 1 --json docs/results/bench_visit_s33.json
 
-Runs the command as a user does, once per ``--arm-workers`` value (0: one arm process per core, the default;
-1: the arms one after the other in the command's own process), in a fresh process each time. Every 0.2 s the
+Runs the command as a user does, once per ``--arm-workers`` value (0: as many arms at once as cores, each on a
+thread of the command with one core, the default; 1: the arms one after the other, each with every core), in a
+fresh process each time. Every 0.2 s the
 resident set (``/proc/PID/statm``) of the command and of every process below it is read: the peak of their sum
 is what the machine must hold at once. The stage times are the command's own ``report.json``.
 """

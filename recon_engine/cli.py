@@ -144,9 +144,8 @@ def add_commands(sub) -> None:
     p.add_argument("--out", required=True, help="folder for torso.ply, torso-mesh.ply and report.json")
     p.add_argument("--force", action="store_true", help="write into OUT even if it holds files")
     p.add_argument("--arm-workers", type=int, default=0, metavar="N",
-                   help="arms reconstructed at once, each in its own process (default 0: one per core); 1 "
-                        "reconstructs them one after the other in this process, with every core: at paper scale "
-                        "0.81 GB at most instead of 2.1-2.3 GB, for 12-40%% more time (docs/benchmarks.md, "
+                   help="arms reconstructed at once, each on its own thread with its share of the cores (default 0: "
+                        "one per core); 1 reconstructs them one after the other with every core (docs/benchmarks.md, "
                         "the whole visit)")
     p.add_argument("capture", metavar="CAPTURE", help="torso capture bundle (folder or .zip)")
     p.set_defaults(func=_cmd_reconstruct)
@@ -212,12 +211,8 @@ def _cmd_reconstruct(args) -> int:
     from .results import write_torso
 
     if args.arm_workers < 0:
-        raise ValueError(f"--arm-workers is {args.arm_workers}: give 0 (one process per core) or more")
-    if args.arm_workers == 1:
-        # the arms in this process to save memory: blocks above 4 MB go back to the system when freed
-        parallel.reuse_freed_images(mmap_threshold=4 << 20, trim_threshold=32 << 20)
-    else:
-        parallel.reuse_freed_images()  # this process is ours: full-size images are freed and allocated again
+        raise ValueError(f"--arm-workers is {args.arm_workers}: give 0 (one per core) or more")
+    parallel.return_freed_images()  # this process is ours: each arm's images leave memory when it is done
     rig, calibration, capture = _torso_inputs(args)
     out = Path(args.out)
     if out.exists() and any(out.iterdir()) and not args.force:

@@ -9,10 +9,9 @@ multi-ray intersection (``multiview``) and the TIN surface (``surface``).
 
 from __future__ import annotations
 
-import multiprocessing
 import queue
 import time
-from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -24,7 +23,7 @@ from .features import local_contrast
 from .formats import Calibration, Capture, FormatError, Rig, load_image
 from .kernels import warm_up
 from .multiview import IntersectionConfig, intersect
-from .parallel import cores, die_with_parent, reuse_freed_images
+from .parallel import cores
 from .registration import (ICPatchConfig, Transform, chain_initial, multi_surface_registration, pair_fit,
                            patch_indices, weak_arms)
 from .surface import (PointSurface, flank_faces, in_patches, make_surface, off_surface, off_surface_again,
@@ -280,7 +279,11 @@ class TorsoConfig:
     # from them, and a closer cut strews pinholes over the skin (paper scale, depth 9, 1.28 mm: 15 % of the
     # vertices cut, most of them inside the measured skin)
     mesh_trim_cells: float = 1.0
-    # arms reconstructed at once, each in its own process (their matching shares the cores); 0: one per core
+    # arms reconstructed at once, each on its own thread of this process with its share of the cores (0: one per
+    # core). Paper scale, seed 33, 2 cores (docs/benchmarks.md, the whole visit): two arms at once on one core each
+    # take as long as two arm processes did (36.8 against 36.9-37.4 s for the four arms) with half the memory
+    # (0.95 against 2.15 GB; the process's allocator returning freed large blocks, as the command sets it); one
+    # arm at a time with both cores' threads takes 1.4 times as long
     arm_workers: int = 0
 
 
@@ -342,10 +345,8 @@ def reconstruct_torso(capture: Capture, rig: Rig, calibration: Calibration, cfg:
     reference = rig.reference_arm.id
     surfaces, arm_reports, failed = {}, {}, {}
     workers = min(len(order), cores(cfg.arm_workers))
-    if multiprocessing.current_process().daemon:
-        workers = 1  # a daemonic process (a job queue's worker) may not start processes of its own
     if workers > 1:
-        outcomes = _arms_in_processes(capture, rig, calibration, order, cfg.arm, workers, progress)
+        outcomes = _arms_in_threads(capture, rig, calibration, order, cfg.arm, workers, progress)
     else:
         outcomes = ((arm, *_arm_outcome(capture, rig, calibration, arm, cfg.arm, progress)) for arm in order)
     for arm, result, error in outcomes:
@@ -369,36 +370,20 @@ def _arm_outcome(capture, rig, calibration, arm, cfg, progress):
         return None, str(exc)
 
 
-_PROGRESS = None  # in an arm worker process: the queue its progress messages go to
+def _arms_in_threads(capture, rig, calibration, order, cfg, workers, progress):
+    """Yield ``(arm, result, error)`` for every arm, reconstructed ``workers`` at a time on threads, in ``order``.
 
-
-def _init_arm_worker(messages):
-    global _PROGRESS
-    _PROGRESS = messages
-    # these processes are the engine's own, started and ended by _arms_in_processes: tuning their allocator
-    # changes no caller's process (unlike reconstruct_arm in the caller's process, which must leave it alone)
-    reuse_freed_images()
-    die_with_parent()
-
-
-def _arm_in_worker(capture, rig, calibration, arm, cfg):
-    return _arm_outcome(capture, rig, calibration, arm, cfg, _PROGRESS.put)
-
-
-def _arms_in_processes(capture, rig, calibration, order, cfg, workers, progress):
-    """Yield ``(arm, result, error)`` for every arm, reconstructed in ``workers`` processes, in ``order``.
-
-    The cores are shared out: each process matches and intersects with ``cpu_count // workers`` threads.
+    The cores are shared out: each arm matches and intersects with ``cores() // workers`` threads (the compiled
+    kernels, OpenCV and numpy's large operations release the GIL). The arms' progress messages reach
+    ``progress`` on the calling thread.
     """
     threads = max(1, cores() // workers)
     cfg = replace(cfg, tracking=replace(cfg.tracking, matching=replace(cfg.tracking.matching, threads=threads)),
                   intersection=replace(cfg.intersection, threads=threads))
-    # spawn, not fork: the parent may hold OpenCV's and Open3D's thread pools, which a fork does not carry over
-    ctx = multiprocessing.get_context("spawn")
-    messages = ctx.Queue()
-    progress(f"reconstructing arms {', '.join(order)} in {workers} processes")
-    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_arm_worker, initargs=(messages,)) as pool:
-        futures = {arm: pool.submit(_arm_in_worker, capture, rig, calibration, arm, cfg) for arm in order}
+    messages = queue.Queue()
+    progress(f"reconstructing arms {', '.join(order)}, {workers} at a time")
+    with ThreadPoolExecutor(workers, thread_name_prefix="arm") as pool:
+        futures = {arm: pool.submit(_arm_outcome, capture, rig, calibration, arm, cfg, messages.put) for arm in order}
         for arm in order:
             while True:
                 try:

@@ -142,12 +142,13 @@ def test_the_torso_file_carries_where_the_patients_back_faces(torso_out):
 
 
 def test_arms_one_after_another_give_the_same_torso(torso_scenario, torso_out, tmp_path, capsys):
-    # --arm-workers 1, for a server short of memory: the arms in turn in the command's own process
+    # --arm-workers 1: the arms in turn, each with every core's threads; the default (torso_out) runs them on
+    # threads side by side, one core each
     rc = main(["reconstruct", "--rig", str(torso_scenario / "rig.json"),
                "--calibration", str(torso_scenario / "truth" / "calibration.json"), "--arm-workers", "1",
                "--out", str(tmp_path / "serial"), str(torso_scenario / "captures" / "visit0-a")])
     assert rc == 0
-    assert "processes" not in capsys.readouterr().out
+    assert "at a time" not in capsys.readouterr().out
     a = read_ply(torso_out / "torso.ply")["points"]
     b = read_ply(tmp_path / "serial" / "torso.ply")["points"]
     assert len(a) == len(b)
@@ -161,3 +162,18 @@ def test_it_rejects_a_negative_number_of_arm_workers(torso_scenario, tmp_path, c
     assert rc == 2
     assert "--arm-workers is -1" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_arms_side_by_side_run_on_threads_of_the_command_and_report_from_there(torso_scenario, tmp_path, capsys):
+    import threading
+
+    before = {t.ident for t in threading.enumerate()}
+    rc = main(["reconstruct", "--rig", str(torso_scenario / "rig.json"),
+               "--calibration", str(torso_scenario / "truth" / "calibration.json"), "--arm-workers", "2",
+               "--out", str(tmp_path / "two"), str(torso_scenario / "captures" / "visit0-a")])
+    out = capsys.readouterr().out
+    assert rc == 0 and "reconstructing arms A, B, C, D, 2 at a time" in out
+    # every arm's own progress reached the command's output (from the arm threads, through the calling thread)
+    assert all(f"arm {arm}: matching and tracking through" in out for arm in "ABCD")
+    assert {t.ident for t in threading.enumerate()} <= before  # the arm threads ended with the command
+
