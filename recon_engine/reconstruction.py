@@ -318,7 +318,7 @@ def poisson_mesh(points: np.ndarray, normals: np.ndarray, depth: int, trim_mm: f
     point are cut, with ``cell`` the octree's finest cell (:func:`poisson_cell_mm`):
     the mesh bridges gaps narrower than about twice that and leaves wider ones open.
     """
-    from .o3d import o3d  # here, not at the top: the arm processes never need its 90 MB
+    from .o3d import o3d  # here, not at the top: a process that only reconstructs arms never needs it
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     pcd.normals = o3d.utility.Vector3dVector(normals)

@@ -151,8 +151,8 @@ class PatchIndex:
             if keep.sum() >= 3:
                 surface = PointSurface(surface.points, surface.normals, F0[keep], surface.data)
         self.surface = surface
-        from .o3d import o3d  # here, not at the top: the engine's arm processes import this module but never
-        # register, and Open3D costs each of them 90 MB
+        from .o3d import o3d  # here, not at the top: a process that only reconstructs arms (a clinic worker's arm
+        # task) imports this module but never registers: Open3D need not load there
 
         mesh = o3d.t.geometry.TriangleMesh()
         mesh.vertex.positions = o3d.core.Tensor(surface.points.astype(np.float32))
