@@ -74,9 +74,9 @@ def die_with_parent() -> bool:
     """Have the kernel end this process (SIGTERM) when the process that started it dies (Linux; False
     elsewhere).
 
-    For the engine's own worker processes only, called at their start: a killed ``torsoscan reconstruct`` or
-    ``simulate`` would otherwise leave its spawned workers computing with no one to read their results (seen:
-    render workers going on for minutes after their command was killed). The signal follows the thread that
+    For the engine's own worker processes only (the simulator's renderers), called at their start: a killed
+    ``torsoscan simulate`` would otherwise leave its spawned workers computing with no one to read their results
+    (seen: render workers going on for minutes after their command was killed). The signal follows the thread that
     started the worker, so the pools that use it are created and shut down within one call."""
     import multiprocessing
     import signal
