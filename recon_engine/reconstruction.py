@@ -281,9 +281,9 @@ class TorsoConfig:
     mesh_trim_cells: float = 1.0
     # arms reconstructed at once, each on its own thread of this process with its share of the cores (0: one per
     # core). Paper scale, seed 33, 2 cores (docs/benchmarks.md, the whole visit): two arms at once on one core each
-    # take as long as two arm processes did (36.8 against 36.9-37.4 s for the four arms) with half the memory
-    # (0.95 against 2.15 GB; the process's allocator returning freed large blocks, as the command sets it); one
-    # arm at a time with both cores' threads takes 1.4 times as long
+    # take as long as two arm processes did (the four arms 36.9-38.9 s against 36.9-37.4 s) with less than half
+    # the memory (the visit 0.86-0.94 GB against 2.15-2.17 GB; the command's allocator returns freed large
+    # blocks); one arm at a time with both cores' threads takes 1.2-1.3 times as long
     arm_workers: int = 0
 
 
