@@ -25,16 +25,27 @@ def _stand_in() -> types.ModuleType:
     stand_in = types.ModuleType(PLOTLY_MODULE)
     stand_in.__doc__ = "Stand-in for Open3D's Plotly helpers (recon_engine.o3d): the real module loads on first call."
 
+    def real():
+        if sys.modules.get(PLOTLY_MODULE) is stand_in:
+            del sys.modules[PLOTLY_MODULE]
+        return importlib.import_module(PLOTLY_MODULE)
+
     def forward(name):
         def call(*args, **kwargs):
-            if sys.modules.get(PLOTLY_MODULE) is stand_in:
-                del sys.modules[PLOTLY_MODULE]
-            return getattr(importlib.import_module(PLOTLY_MODULE), name)(*args, **kwargs)
+            return getattr(real(), name)(*args, **kwargs)
         call.__name__ = call.__qualname__ = name
         return call
 
     for name in PLOTLY_FUNCTIONS:
         setattr(stand_in, name, forward(name))
+    def other(name):
+        """Anything else asked of the stand-in (the module's other helpers) comes from the real module; not the
+        import machinery's own questions (``__path__``, ``__spec__``, ...), which must not load it."""
+        if name.startswith("__"):
+            raise AttributeError(name)
+        return getattr(real(), name)
+
+    stand_in.__getattr__ = other
     return stand_in
 
 
