@@ -38,6 +38,7 @@ def _stand_in() -> types.ModuleType:
 
     for name in PLOTLY_FUNCTIONS:
         setattr(stand_in, name, forward(name))
+
     def other(name):
         """Anything else asked of the stand-in (the module's other helpers) comes from the real module; not the
         import machinery's own questions (``__path__``, ``__spec__``, ...), which must not load it."""

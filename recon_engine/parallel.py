@@ -60,9 +60,11 @@ def return_freed_images() -> bool:
 
     For a process that reconstructs several arms (``torsoscan reconstruct``):
     each arm's full-size images leave the resident set when the arm is done,
-    instead of staying for the next one. Paper scale, seed 33, the four arms
-    two at a time: 0.95 GB at the peak instead of 1.56 GB, for about 8 % more
-    time (docs/benchmarks.md, the whole visit).
+    instead of staying for the next one. Paper scale, seed 33, the arms two
+    at a time on threads: the whole visit 0.86-0.94 GB at the peak
+    (docs/benchmarks.md, the whole visit); with the allocator keeping freed
+    blocks the four arms alone reached 1.56 GB, about 8 % faster (one run of
+    an experiment, not a committed benchmark).
     """
     return reuse_freed_images(mmap_threshold=4 << 20, trim_threshold=32 << 20)
 
