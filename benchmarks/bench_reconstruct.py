@@ -16,7 +16,7 @@ cameras of one arm see, the paper's Table 1 (average normal distance and
 matched fraction of every neighbouring pair after the multiple
 registration), the misclosure that pair-wise registration alone leaves at the
 closing pair, and the time of each stage. Writes
-``bench-out/bench_reconstruct.json`` (and each capture's arm surfaces, pickled,
+``--json`` (default ``bench-out/bench_reconstruct.json``; and each capture's arm surfaces, pickled,
 with ``--keep-surfaces``).
 """
 
@@ -27,6 +27,7 @@ import json
 import pickle
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -122,7 +123,7 @@ def run_capture(args, capture: str) -> dict:
     cal = read_calibration(args.calibration)
     cap = read_capture(S / "captures" / capture, rig)
     t0 = time.perf_counter()
-    res = reconstruct_torso(cap, rig, cal, progress=lambda m: print(f"  {m}", flush=True))
+    res = reconstruct_torso(cap, rig, cal, args.torso_cfg, progress=lambda m: print(f"  {m}", flush=True))
     wall = time.perf_counter() - t0
     truth = Truth(S, capture)
     true_cal = read_calibration(S / "truth" / capture / "calibration.json")
@@ -140,6 +141,8 @@ def run_capture(args, capture: str) -> dict:
     reg = rep["registration"]
     out = {
         "capture": capture, "reference": rig.reference_arm.id,
+        "ours_settings": {"fill_spacing_mm": args.torso_cfg.arm.tracking.fill_spacing_mm,
+                          "max_sigma_factor": args.torso_cfg.arm.max_sigma_factor},
         "points": int(len(P)), "rms_mm": float(np.sqrt(np.mean(d ** 2))), "p95_mm": float(np.percentile(d, 95)),
         "max_mm": float(d.max()), "coverage": coverage, "seen_area_cm2": float(truth.area[seen2].sum() / 100),
         "table1": reg["pairs"], "pairwise": reg["pairwise"], "sigmas": reg["sigmas"],
@@ -178,7 +181,7 @@ def run_capture(args, capture: str) -> dict:
                      ICPatchConfig(curved_patches=False, symmetric=False, max_points_per_pair=20000)))
     for name, icfg in variants:
         t1 = time.perf_counter()
-        alt = register_arms(surfaces, rep["arms"], rep["failed_arms"], rig, cal, TorsoConfig(icpatch=icfg))
+        alt = register_arms(surfaces, rep["arms"], rep["failed_arms"], rig, cal, replace(args.torso_cfg, icpatch=icfg))
         dt = time.perf_counter() - t1
         areg = alt["report"]["registration"]
         out["displacement_error"][name] = displacement_errors(alt["transforms"], D, truth.centroid)
@@ -207,7 +210,18 @@ def main() -> int:
                          "(\"none\": all patches); the default's is not repeated")
     ap.add_argument("--keep-surfaces", action="store_true",
                     help="pickle each capture's arm surfaces and reports to bench-out/surfaces-<capture>.pkl")
+    ap.add_argument("--fill-spacing-mm", type=float, default=None,
+                    help="our TrackingConfig.fill_spacing_mm (a cheaper rig: 2.0; default: the engine's)")
+    ap.add_argument("--max-sigma-factor", type=float, default=None,
+                    help="our ReconstructionConfig.max_sigma_factor (with the fill: 4.0; default: the engine's)")
+    ap.add_argument("--json", default="bench-out/bench_reconstruct.json")
     args = ap.parse_args()
+    arm = TorsoConfig().arm
+    if args.fill_spacing_mm is not None:
+        arm = replace(arm, tracking=replace(arm.tracking, fill_spacing_mm=args.fill_spacing_mm))
+    if args.max_sigma_factor is not None:
+        arm = replace(arm, max_sigma_factor=args.max_sigma_factor)
+    args.torso_cfg = TorsoConfig(arm=arm)
     return_freed_images()  # as `torsoscan reconstruct` does: the figures are the command's
     run = provenance(__file__)
     runs = {c: run_capture(args, c) for c in args.capture}
@@ -227,7 +241,8 @@ def main() -> int:
     out = {**run, "captures": runs, "summary": summary}
     if len(runs) == 1:
         out.update(next(iter(runs.values())))  # the single-capture layout of earlier runs
-    Path("bench-out/bench_reconstruct.json").write_text(json.dumps(out, indent=2))
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps(out, indent=2))
     print(json.dumps(summary, indent=1))
     return 0
 
