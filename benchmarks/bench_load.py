@@ -126,13 +126,13 @@ def main():
         run_manage(env, "migrate", "--noinput")
         keys = {f"LOAD-{i:02d}": "tsk_load-" + uuid.uuid4().hex for i in range(args.rigs)}
         seed = ("import json, sys; from django.contrib.auth.models import User;"
-                "from clinic.api import sync_cameras; from clinic.models import *; from clinic.models import _hash_key;"
+                "from clinic.api import sync_cameras; from clinic.models import *; from clinic.models import hash_key;"
                 "from recon_engine.formats import rig_from_dict;"
                 "c = Clinic.objects.create(name='Load');"
                 "v = Visit.objects.create(patient=Patient.objects.create(clinic=c, identifier='P-1', name='Pat'));"
                 f"keys = json.loads({json.dumps(json.dumps(keys))}); rigs = json.loads({json.dumps(json.dumps({s: rig_json(s) for s in keys}))});"
                 "[sync_cameras(r, rig_from_dict(rigs[r.serial])) or RigKey.objects.create(rig=r, prefix=keys[r.serial][:10], "
-                "key_hash=_hash_key(keys[r.serial])) for r in [Rig.objects.create(clinic=c, serial=s, description=rigs[s]) "
+                "key_hash=hash_key(keys[r.serial])) for r in [Rig.objects.create(clinic=c, serial=s, description=rigs[s]) "
                 "for s in keys]];"
                 "print(v.pk)")
         visit = int(run_manage(env, "shell", "-c", seed).split()[-1])

@@ -181,7 +181,7 @@ class VisitIn(Schema):
 
 # --- helpers ------------------------------------------------------------------------------
 
-def _member_clinic(request, clinic_id, roles=(Member.ADMINISTRATOR, Member.TECHNICIAN)):
+def member_clinic(request, clinic_id, roles=(Member.ADMINISTRATOR, Member.TECHNICIAN)):
     m = Member.objects.filter(user=request.user, clinic_id=clinic_id).first()
     if m is None:
         raise ApiError(404, f"clinic {clinic_id} not found")
@@ -713,7 +713,7 @@ def _uuid(value: str):
 @api.post("/rigs", auth=django_auth, tags=["staff"])
 def register_rig(request, body: RigIn):
     """Register a rig from its ``rig.json``; the answer holds its API key, shown this once."""
-    clinic = _member_clinic(request, body.clinic)
+    clinic = member_clinic(request, body.clinic)
     check_json(body.rig, "rig.json")
     engine_rig = rig_from_dict(body.rig, "rig.json")
     check_rig(body.rig, engine_rig, "rig.json")
@@ -744,7 +744,7 @@ def sync_cameras(rig: Rig, engine_rig) -> None:
 def new_rig_key(request, serial: str):
     check_param(serial, "serial", 64)
     rig = get_object_or_404(Rig.objects.filter(clinic__in=clinics_of(request.user)), serial=serial)
-    _member_clinic(request, rig.clinic_id)
+    member_clinic(request, rig.clinic_id)
     _, key = RigKey.issue(rig)
     return _respond(request, {"serial": rig.serial, "key": key, "note": "store this key now: it is not shown again"}, 201)
 
@@ -754,7 +754,7 @@ def revoke_rig_key(request, serial: str, prefix: str):
     check_param(serial, "serial", 64)
     check_param(prefix, "prefix", 16)
     rig = get_object_or_404(Rig.objects.filter(clinic__in=clinics_of(request.user)), serial=serial)
-    _member_clinic(request, rig.clinic_id)
+    member_clinic(request, rig.clinic_id)
     n = rig.keys.filter(prefix=prefix, revoked__isnull=True).update(revoked=timezone.now())
     if not n:
         raise ApiError(404, f"rig {serial} has no live key starting {prefix!r}")
@@ -765,7 +765,7 @@ def revoke_rig_key(request, serial: str, prefix: str):
 def register_testfield(request, body: TestFieldIn):
     from recon_engine.formats import read_testfield
 
-    clinic = _member_clinic(request, body.clinic)
+    clinic = member_clinic(request, body.clinic)
     check_json(body.testfield, "testfield.json")
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "testfield.json"
@@ -784,7 +784,7 @@ def register_testfield(request, body: TestFieldIn):
 
 @api.post("/patients", auth=django_auth, tags=["staff"])
 def create_patient(request, body: PatientIn):
-    clinic = _member_clinic(request, body.clinic, roles=(Member.ADMINISTRATOR, Member.TECHNICIAN, Member.CLINICIAN))
+    clinic = member_clinic(request, body.clinic, roles=(Member.ADMINISTRATOR, Member.TECHNICIAN, Member.CLINICIAN))
     if Patient.objects.filter(clinic=clinic, identifier=body.identifier).exists():
         raise ApiError(409, f"patient {body.identifier!r} already exists in {clinic.name}")
     p = Patient.objects.create(clinic=clinic, identifier=body.identifier, name=body.name,
@@ -810,7 +810,7 @@ def rerun_job(request, job_id: str):
     409 while a worker holds it. A queued job is sent to the broker again.
     """
     job = get_object_or_404(_jobs_for(request), uid=_uuid(job_id))
-    _member_clinic(request, job.rig.clinic_id)
+    member_clinic(request, job.rig.clinic_id)
     try:
         job = pipeline.rerun(job)
     except pipeline.JobError as exc:

@@ -57,7 +57,7 @@ def stored_names(storage=default_storage, folder=""):
 def referencing_rows():
     """(model label, pk, storage name) for every file a row of the clinic's records names."""
     for model in apps.get_app_config("clinic").get_models():
-        if records._refers_to_files(model):
+        if records.refers_to_files(model):
             for row in model.objects.all().iterator():
                 for name in records.stored_names([row]):
                     yield model._meta.label, row.pk, name

@@ -124,7 +124,7 @@ class Camera(models.Model):
         return f"{self.rig.serial}/{self.name}"
 
 
-def _hash_key(key: str) -> str:
+def hash_key(key: str) -> str:
     # the keys are 256-bit random strings, so a fast hash cannot be brute-forced
     return hashlib.sha256(key.encode()).hexdigest()
 
@@ -146,14 +146,14 @@ class RigKey(models.Model):
     def issue(cls, rig):
         """A new key for ``rig``: ``(RigKey, key)``. The plain key is never stored."""
         key = "tsk_" + secrets.token_urlsafe(32)
-        return cls.objects.create(rig=rig, prefix=key[:10], key_hash=_hash_key(key)), key
+        return cls.objects.create(rig=rig, prefix=key[:10], key_hash=hash_key(key)), key
 
     @classmethod
     def lookup(cls, key: str):
         """The live key matching ``key``, or None."""
         if not key:
             return None
-        return cls.objects.select_related("rig").filter(key_hash=_hash_key(key), revoked__isnull=True).first()
+        return cls.objects.select_related("rig").filter(key_hash=hash_key(key), revoked__isnull=True).first()
 
 
 class TestField(models.Model):

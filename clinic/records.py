@@ -56,7 +56,7 @@ def stored_names(rows):
     return names
 
 
-def _refers_to_files(model):
+def refers_to_files(model):
     return any(isinstance(f, models.FileField) for f in model._meta.fields) or any(
         f.name == "pictures" for f in model._meta.fields)
 
@@ -65,7 +65,7 @@ def all_stored_names():
     """Every storage name any row of the clinic's records refers to."""
     names = set()
     for model in apps.get_app_config("clinic").get_models():
-        if _refers_to_files(model):
+        if refers_to_files(model):
             names |= stored_names(model.objects.all().iterator())
     return names
 

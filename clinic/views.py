@@ -41,7 +41,7 @@ from .models import (CaptureSession, Comparison, Job, Member, Patient, Reconstru
 from .validation import MAX_NOTES
 
 # Who may do what. Actions the API has (re-running a job, issuing and revoking a rig's keys) are run through
-# the API's own operations, so the pages get its scoping, its role check (`_member_clinic`, administrators and
+# the API's own operations, so the pages get its scoping, its role check (`member_clinic`, administrators and
 # technicians) and its logic. Actions only the pages have ask the same helper with these roles:
 CORRECT_LANDMARKS = (Member.CLINICIAN, Member.ADMINISTRATOR)  # a clinical judgement: not technicians
 MANAGE_MEMBERS = (Member.ADMINISTRATOR,)
@@ -55,8 +55,8 @@ def _require_role(request, clinic_id, roles=None):
     """The clinic, if the user's role in it allows the action: 404 for a non-member, 403 for another role."""
     try:
         if roles is None:  # the API's default: what its staff endpoints allow
-            return api._member_clinic(request, clinic_id)
-        return api._member_clinic(request, clinic_id, roles=roles)
+            return api.member_clinic(request, clinic_id)
+        return api.member_clinic(request, clinic_id, roles=roles)
     except api.ApiError as exc:
         raise (Http404 if exc.status == 404 else PermissionDenied)(exc.detail) from None
 

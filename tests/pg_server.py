@@ -24,7 +24,7 @@ PG = dict(host="127.0.0.1", port=5432, user="postgres")
 KEY = "tsk_the-pg-server-tests-rig-key"  # the template's rig key (only its hash is stored, as for any key)
 SEED = ("from django.contrib.auth.models import User;"
         "from clinic.api import sync_cameras; from clinic.models import Clinic, Member, Patient, Rig, RigKey, Visit;"
-        "from clinic.models import _hash_key;"
+        "from clinic.models import hash_key;"
         "from recon_engine.formats import rig_from_dict; from tests.boundary_fixtures import RIG;"
         "c = Clinic.objects.create(name='Northside');"
         "u = User.objects.create_user('alice', '', 'pw-alice');"
@@ -32,7 +32,7 @@ SEED = ("from django.contrib.auth.models import User;"
         "rig = Rig.objects.create(clinic=c, serial=RIG['serial'], description=RIG);"
         "sync_cameras(rig, rig_from_dict(RIG));"
         "Visit.objects.create(patient=Patient.objects.create(clinic=c, identifier='P-1', name='Test Patient'));"
-        f"RigKey.objects.create(rig=rig, prefix='{KEY[:10]}', key_hash=_hash_key('{KEY}'))")
+        f"RigKey.objects.create(rig=rig, prefix='{KEY[:10]}', key_hash=hash_key('{KEY}'))")
 
 
 def run_sql(query, dbname="postgres"):
