@@ -275,6 +275,13 @@ def summarise(bodies, mdc) -> dict:
         sel = [s for s in measured if lo <= s["dimples_mm"] < hi]
         found = sum(s["landmark_confidence"]["dimple_left"] == "high" for s in sel)
         out.setdefault("dimples_found", {})[f"{lo:g}-{hi:g} mm deep"] = f"{found}/{len(sel)}"
+        # the automatic (suggested) dimples against the simulator's, each side of each scan
+        err = [np.linalg.norm(s["landmark_error"][k]) for s in sel for k in ("dimple_left", "dimple_right")
+               if k in s["landmark_error"]]
+        suggested = [s for s in sel if s["report"]["landmarks"]["dimple_left"]["method"].startswith("suggested")]
+        out.setdefault("dimples_automatic", {})[f"{lo:g}-{hi:g} mm deep"] = {
+            "error_mm_median": float(np.median(err)) if err else None,
+            "within_6mm": f"{sum(e <= 6 for e in err)}/{len(err)}", "scans_suggested": f"{len(suggested)}/{len(sel)}"}
     idx = {}
     for k in FIGURES:
         rows = {}

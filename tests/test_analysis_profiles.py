@@ -100,13 +100,13 @@ def test_it_tells_the_right_side_of_the_pelvis_higher_as_positive():
     assert got["pelvic_torsion_deg"] == pytest.approx(4.0)
 
 
-def _back(dimples_mm, left=(45.0, 860.0), right=(-45.0, 866.0), seed=0):
-    """A depth map of a convex lower back (patient frame) with two cup-shaped hollows."""
+def _back(dimples_mm, left=(45.0, 860.0), right=(-45.0, 866.0), seed=0, extra=()):
+    """A depth map of a convex lower back (patient frame) with two round hollows (and ``extra`` ones)."""
     x = np.arange(-150.0, 150.1, 2.0)
     z = np.arange(760.0, 1000.1, 2.0)
     Z, X = np.meshgrid(z, x, indexing="ij")
     depth = 90 - X ** 2 / 400.0 - 4.0 * np.exp(-0.5 * (X / 8.0) ** 2)  # convex across, a spinal furrow
-    for cx, cz in (left, right):
+    for cx, cz in (left, right, *extra):
         depth = depth - dimples_mm * np.exp(-0.5 * (((X - cx) / 11.0) ** 2 + ((Z - cz) / 14.0) ** 2))
     depth = depth + np.random.default_rng(seed).normal(0, 0.02, depth.shape)
     return DepthMap(x, z, depth)
@@ -115,15 +115,23 @@ def _back(dimples_mm, left=(45.0, 860.0), right=(-45.0, 866.0), seed=0):
 def test_it_suggests_a_pair_of_clear_dimples_where_they_are_but_leaves_them_to_the_clinician():
     z = np.arange(760.0, 1000.0, 4.0)
     found = find_dimples(_back(6.0), 830.0, 450.0, (z, np.zeros_like(z)))
-    assert found["dimple_confidence"] == "low" and found["dimple_method"].startswith("suggested")
-    assert np.allclose(found["dimple_left"][[0, 2]], [45, 860], atol=4)
-    assert np.allclose(found["dimple_right"][[0, 2]], [-45, 866], atol=4)
+    assert found["dimple_confidence"] == "low"
+    assert found["dimple_method"].startswith("suggested") and "rival" not in found["dimple_method"]
+    # to a fraction of the depth map's 2 mm cells
+    assert np.allclose(found["dimple_left"][[0, 2]], [45, 860], atol=1.5)
+    assert np.allclose(found["dimple_right"][[0, 2]], [-45, 866], atol=1.5)
 
 
 def test_it_is_not_confident_of_dimples_on_a_smooth_back():
     z = np.arange(760.0, 1000.0, 4.0)
     found = find_dimples(_back(0.0), 830.0, 450.0, (z, np.zeros_like(z)))
-    assert found["dimple_confidence"] == "low" and not found["dimple_method"].startswith("suggested")
+    assert found["dimple_confidence"] == "low" and found["dimple_method"] == "hollows too shallow"
+
+
+def test_it_says_when_another_hollow_is_as_deep_as_the_dimples():
+    z = np.arange(760.0, 1000.0, 4.0)
+    found = find_dimples(_back(6.0, extra=[(60.0, 900.0)]), 830.0, 450.0, (z, np.zeros_like(z)))
+    assert found["dimple_confidence"] == "low" and "a rival hollow nearby" in found["dimple_method"]
 
 
 def test_it_tells_both_reasons_when_two_kinds_of_figure_are_withheld():
