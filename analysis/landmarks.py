@@ -307,7 +307,8 @@ def point_on_midline(dmap: DepthMap, z: float, xs=None, zs=None, cfg=None, below
 # 22 x 28 mm across at 1 sigma): the half Laplacian at 12 mm against its 15 mm neighbourhood put the dimples 3.5 mm
 # deep or more within 6 mm on 19 of 20 sides (median 2.7 mm), the smaller principal curvature at 6 mm against
 # its 20 mm neighbourhood (rasterstereography's cup) on 11 of 20 (4.0 mm); held out (seed 200): 6 of 8 sides
-# (3.5 mm) against 3 of 8 (7.7 mm), and over dimples of every depth 17 of 40 against 8 of 40
+# (3.5 mm) against 3 of 8 (7.7 mm), over dimples of every depth 17 of 40 against 8 of 40 (baselines and
+# re-scans; with the progressions, docs/analysis.md section 6.2)
 DIMPLE_SCALE_MM = 12.0  # scale (sigma) of the hollow's Laplacian: about a dimple's half-width
 DIMPLE_NEIGHBOURHOOD_MM = 15.0  # the neighbourhood the hollows stand out from
 DIMPLE_BROAD_MM = 20.0  # the back's broad shape (holes in the depth map, the surface inclination at a dimple)
