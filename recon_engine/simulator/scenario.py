@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ..formats import Calibration, write_calibration, write_capture, write_json, write_rig, write_testfield
-from ..parallel import die_with_parent
+from ..parallel import start_worker_process
 from .bodies import Posture, curve_profiles, load_body, pose_body, skin_albedo
 from .config import ScenarioConfig
 from .render import Lighting, PreparedLighting, Scene, Surface, render
@@ -157,9 +157,9 @@ def simulate(out: str | Path, cfg: ScenarioConfig, force: bool = False, progress
     n_workers = max(1, workers or os.cpu_count() or 1)
     pool = None
     if n_workers > 1:
-        # a killed command must not leave its render workers behind (die_with_parent)
+        # a killed command must not leave its render workers behind, and each worker one thread per pool
         pool = ProcessPoolExecutor(n_workers, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=die_with_parent)
+                                   initializer=start_worker_process)
     try:
         return _simulate(out, cfg, force, progress, n_workers, pool)
     finally:
