@@ -96,22 +96,23 @@ def die_with_parent() -> bool:
 
 
 # read by OpenMP (Open3D's own, linked in: threadpoolctl cannot see it), OpenBLAS and MKL when they load
-_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", THREADS_ENV)
+_LIBRARY_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 def start_worker_process() -> None:
-    """At the start of one of the engine's own worker processes (one per core, e.g. the simulator's
-    renderers): end with the parent (:func:`die_with_parent`), and one thread for each library's pool.
+    """At the start of one of the engine's own worker processes, one per core (the simulator's renderers): end
+    with the parent (:func:`die_with_parent`), and one thread for each library's pool (BLAS, OpenMP, OpenCV).
 
-    The processes already use the cores; threads on top only wait on each
-    other (OpenBLAS and OpenMP spin while they wait). Tiny preset, one test
-    field's 60 images in 2 processes on 2 cores: 28 s of wall time and 52 s
-    of CPU with the libraries' default pools, 18 s and 32 s with one thread
-    each. Process-wide, so only for the processes the engine starts itself.
+    The processes already use the cores; threads of the libraries' pools on
+    top only wait on each other (OpenBLAS and OpenMP spin while they wait).
+    Tiny preset, one test field's 60 images in 2 render processes on 2 cores:
+    28 s of wall time and 52 s of CPU with the default pools, 18 s and 32 s
+    with one thread each, the same images. Process-wide, so only for processes
+    the engine starts itself; OpenMP reads the environment once when it loads,
+    before the render stage imports Open3D.
     """
     die_with_parent()
-    # before Open3D loads (its OpenMP reads the environment once); BLAS already loaded is limited below
-    os.environ.update({k: "1" for k in _THREAD_ENV})
+    os.environ.update({k: "1" for k in _LIBRARY_THREAD_ENV})
     import cv2
 
     cv2.setNumThreads(1)
@@ -119,5 +120,4 @@ def start_worker_process() -> None:
         from threadpoolctl import threadpool_limits
     except ImportError:  # a dependency of ours; without it the environment still limits what loads later
         return
-    threadpool_limits(limits=1)
-
+    threadpool_limits(limits=1, user_api="blas")  # those already loaded (numpy's)
