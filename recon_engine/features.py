@@ -21,8 +21,12 @@ def local_contrast(image: np.ndarray, window: int) -> np.ndarray:
     """Standard deviation of the grey values over a ``window``-square neighbourhood (grey levels)."""
     img = np.asarray(image, dtype=np.float32)
     m = cv2.boxFilter(img, cv2.CV_32F, (window, window), borderType=cv2.BORDER_REFLECT)
-    m2 = cv2.boxFilter(img * img, cv2.CV_32F, (window, window), borderType=cv2.BORDER_REFLECT)
-    return np.sqrt(np.maximum(m2 - m * m, 0))
+    m2 = cv2.boxFilter(np.square(img), cv2.CV_32F, (window, window), borderType=cv2.BORDER_REFLECT)
+    # in place: a paper-scale image is 24 MB per float32 array, and two arms run this at once
+    np.square(m, out=m)
+    np.subtract(m2, m, out=m2)
+    np.maximum(m2, 0, out=m2)
+    return np.sqrt(m2, out=m2)
 
 
 def blur_sigma(image: np.ndarray, reblur_px: float = 2.0, edge_share: float = 0.1) -> float:
@@ -129,7 +133,7 @@ def harris_features(image: np.ndarray, mask: np.ndarray | None = None, spacing: 
     """
     R = harris_response(image, block_size)
     if mask is not None:
-        R = np.where(mask, R, 0).astype(np.float32)
+        R[~np.asarray(mask, dtype=bool)] = 0  # R is our own array: no copy of a full-size image
     positive = R[R > 0]
     if positive.size == 0:
         return np.zeros((0, 2)), np.zeros(0)
