@@ -102,10 +102,10 @@ def region_of_interest(image: np.ndarray, window: int = 15, min_contrast: float 
     return mask.astype(bool)
 
 
-STRIP_ROWS = 256  # rows of an image whose structure tensor OpenCV holds at once (_in_strips)
+STRIP_ROWS = 256  # rows of an image whose structure tensor OpenCV holds at once (corner_response_in_strips)
 
 
-def _in_strips(corner_fn, image: np.ndarray, block_size: int, ksize: int, *args) -> np.ndarray:
+def corner_response_in_strips(corner_fn, image: np.ndarray, block_size: int, ksize: int, *args) -> np.ndarray:
     """``corner_fn(image, block_size, ksize, *args)`` (OpenCV's cornerHarris or cornerMinEigenVal) of a grey
     image, computed over strips of ``STRIP_ROWS`` rows, each with enough rows above and below for its
     derivatives and window, so every pixel sees the neighbours it would in the whole image.
@@ -128,7 +128,7 @@ def _in_strips(corner_fn, image: np.ndarray, block_size: int, ksize: int, *args)
 
 def harris_response(image: np.ndarray, block_size: int = 5, ksize: int = 3, k: float = 0.04) -> np.ndarray:
     """OpenCV's Harris corner response of a grey image (float32)."""
-    return _in_strips(cv2.cornerHarris, image, block_size, ksize, k)
+    return corner_response_in_strips(cv2.cornerHarris, image, block_size, ksize, k)
 
 
 def harris_features(image: np.ndarray, mask: np.ndarray | None = None, spacing: int = 6,
@@ -205,7 +205,7 @@ def cell_features(image: np.ndarray, mask: np.ndarray, cell: int, taken: np.ndar
 
     Returns integer positions (N, 2) px (x = column, y = row), best-textured first.
     """
-    E = _in_strips(cv2.cornerMinEigenVal, image, block_size, 3)
+    E = corner_response_in_strips(cv2.cornerMinEigenVal, image, block_size, 3)
     E = np.where(mask, E, 0.0).astype(np.float32)
     positive = E[E > 0]
     if positive.size == 0 or cell < 1:

@@ -114,8 +114,9 @@ def test_the_corner_responses_in_strips_are_the_whole_images():
     img = cv2.GaussianBlur((rng.random((3 * features.STRIP_ROWS + 37, 301)) * 255).astype(np.float32), (0, 0), 1.0)
     for fn, args in ((cv2.cornerHarris, (0.04,)), (cv2.cornerMinEigenVal, ())):
         whole = fn(img, 5, 3, *args)
-        strips = features._in_strips(fn, img, 5, 3, *args)
+        strips = features.corner_response_in_strips(fn, img, 5, 3, *args)
         assert strips.shape == whole.shape and strips.dtype == np.float32
         # the same neighbours everywhere, strip edges included: at most a rounding of the box filter's sums apart
         np.testing.assert_allclose(strips, whole, rtol=1e-5, atol=1e-6 * np.abs(whole).max())
-    assert np.array_equal(features.harris_response(img), features._in_strips(cv2.cornerHarris, img, 5, 3, 0.04))
+    harris = features.corner_response_in_strips(cv2.cornerHarris, img, 5, 3, 0.04)
+    assert np.array_equal(features.harris_response(img), harris)
