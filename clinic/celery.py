@@ -13,6 +13,9 @@ from contextlib import contextmanager
 
 from celery import Celery, signals
 
+# the engine's one mechanism for a process's thread pools (THREAD_ENV: the variables it sets)
+from recon_engine.parallel import THREAD_ENV, limit_process_threads, set_opencv_threads  # noqa: F401
+
 os.environ.setdefault("DJANGO_SETTINGS_MODULE", "clinic.settings")
 
 app = Celery("torsoscan")
@@ -20,8 +23,6 @@ app.config_from_object("django.conf:settings", namespace="CELERY")
 app.autodiscover_tasks()
 
 TASK_THREADS_ENV = "TORSOSCAN_TASK_THREADS"  # set by the worker's start for its pool processes
-# read by OpenMP (Open3D's too), OpenBLAS and MKL when they load, and by the engine's pools (recon_engine.parallel)
-THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "TORSOSCAN_THREADS")
 
 
 def task_threads(concurrency: int | None = None, cpus: int | None = None) -> int | None:
@@ -33,30 +34,6 @@ def task_threads(concurrency: int | None = None, cpus: int | None = None) -> int
         value = os.environ.get(TASK_THREADS_ENV, "").strip()
         return int(value) if value.isdigit() and int(value) > 0 else None
     return max(1, cpus // max(1, int(concurrency)))
-
-
-def set_opencv_threads(n: int) -> int:
-    """OpenCV's thread pool to ``n`` threads; returns what it was. Only where it differs: reconfiguring a pool
-    a forked process inherited from a parent that had used it deadlocks (OpenCV 5, seen in a forked child)."""
-    import cv2
-
-    before = cv2.getNumThreads()
-    if before != n:
-        cv2.setNumThreads(n)
-    return before
-
-
-def limit_process_threads(n: int) -> None:
-    """This process's thread pools to ``n`` threads, for good: through the environment the libraries loaded
-    from now on and the engine's pools, OpenCV's pool, and BLAS and OpenMP already loaded (threadpoolctl, if
-    installed). For a worker's own processes only."""
-    os.environ.update({k: str(n) for k in THREAD_ENV})
-    set_opencv_threads(n)
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # optional: the environment still limits what loads from now on
-        return
-    threadpool_limits(limits=n)
 
 
 @contextmanager

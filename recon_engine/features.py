@@ -206,7 +206,7 @@ def cell_features(image: np.ndarray, mask: np.ndarray, cell: int, taken: np.ndar
     Returns integer positions (N, 2) px (x = column, y = row), best-textured first.
     """
     E = corner_response_in_strips(cv2.cornerMinEigenVal, image, block_size, 3)
-    E = np.where(mask, E, 0.0).astype(np.float32)
+    E[~np.asarray(mask, dtype=bool)] = 0  # E is our own array, as harris_features' R
     positive = E[E > 0]
     if positive.size == 0 or cell < 1:
         return np.zeros((0, 2))

@@ -95,8 +95,34 @@ def die_with_parent() -> bool:
     return ok
 
 
-# read by OpenMP (Open3D's own, linked in: threadpoolctl cannot see it), OpenBLAS and MKL when they load
-_LIBRARY_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+# read by OpenMP (Open3D's own, linked in: threadpoolctl cannot see it), OpenBLAS and MKL when they load, and by
+# the engine's pools (cores)
+THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", THREADS_ENV)
+
+
+def set_opencv_threads(n: int) -> int:
+    """OpenCV's thread pool to ``n`` threads; returns what it was. Only where it differs: reconfiguring a pool
+    a forked process inherited from a parent that had used it deadlocks (OpenCV 5, seen in a forked child)."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    if before != n:
+        cv2.setNumThreads(n)
+    return before
+
+
+def limit_process_threads(n: int) -> None:
+    """This process's thread pools to ``n`` threads, for good (process-wide): through the environment the
+    libraries loaded from now on (OpenMP reads it once, when Open3D loads) and the engine's pools, OpenCV's pool,
+    and BLAS and OpenMP already loaded (threadpoolctl, if installed). Only for processes whose owner shares the
+    cores out among them: a Celery worker's pool processes, the simulator's render workers."""
+    os.environ.update({k: str(n) for k in THREAD_ENV})
+    set_opencv_threads(n)
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # optional: the environment still limits what loads from now on
+        return
+    threadpool_limits(limits=n)
 
 
 def start_worker_process() -> None:
@@ -107,17 +133,7 @@ def start_worker_process() -> None:
     top only wait on each other (OpenBLAS and OpenMP spin while they wait).
     Tiny preset, one test field's 60 images in 2 render processes on 2 cores:
     28 s of wall time and 52 s of CPU with the default pools, 18 s and 32 s
-    with one thread each, the same images. Process-wide, so only for processes
-    the engine starts itself; OpenMP reads the environment once when it loads,
-    before the render stage imports Open3D.
+    with one thread each, the same images.
     """
     die_with_parent()
-    os.environ.update({k: "1" for k in _LIBRARY_THREAD_ENV})
-    import cv2
-
-    cv2.setNumThreads(1)
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # a dependency of ours; without it the environment still limits what loads later
-        return
-    threadpool_limits(limits=1, user_api="blas")  # those already loaded (numpy's)
+    limit_process_threads(1)
