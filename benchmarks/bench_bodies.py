@@ -192,25 +192,29 @@ def measure(subject, torso, clicks: np.random.Generator) -> dict:
 VISITS = (("baseline", (0, 0)), ("rescan", (0, 0)), ("plus5", (5, 8)), ("plus10", (10, 16)))  # +deg, +mm at the apex
 
 
-def draw_scans(seed: int, n_bodies: int, n_points: int):
+def draw_scans(seed: int, n_bodies: int, n_points: int, arms_crossed: bool = False):
     """Each body of the family and its four scans (``VISITS``), in the order the seed's random stream draws
-    them: yields ``(body, draw, visit, posed subject, torso)``."""
+    them: yields ``(body, draw, visit, posed subject, torso)``. With ``arms_crossed`` every body is the one the
+    seed draws, its forearms crossed in front of the chest instead of its arms' drawn abduction (the same
+    bodies, scans and clicks otherwise: a paired comparison)."""
     rng = np.random.default_rng(seed)
     base = preset("paper")
     for b in range(n_bodies):
         draw = draw_body(rng)
+        if arms_crossed:
+            draw["subject"] = {**draw["subject"], "arm_abduction_deg": 0.0, "arms_crossed": True}
         cfg = replace(base, subject=replace(base.subject, **draw["subject"]))
         for name, (drot, dlat) in VISITS:
             s, t = scan(cfg, draw["rotation_deg"] + drot, draw["lateral_mm"] + dlat, draw["top_mm"], rng, n_points)
             yield b, draw, name, s, t
 
 
-def run_set(seed: int, n_bodies: int, n_points: int, log) -> list[dict]:
+def run_set(seed: int, n_bodies: int, n_points: int, log, arms_crossed: bool = False) -> list[dict]:
     # the clinician's clicks have their own stream, as in bench_rescans: the bodies drawn do not depend on
     # which scans the analysis asked to be marked
     clicks = np.random.default_rng([seed, 1])
     bodies = []
-    for b, draw, name, s, t in draw_scans(seed, n_bodies, n_points):
+    for b, draw, name, s, t in draw_scans(seed, n_bodies, n_points, arms_crossed):
         if name == VISITS[0][0]:
             bodies.append({"body": b, "draw": draw, "scans": {}})
         rec = bodies[-1]
@@ -378,20 +382,36 @@ def main(argv=None):
     ap.add_argument("--points", type=int, default=80_000)
     ap.add_argument("--json", help="write the summaries here")
     ap.add_argument("--write-mdc", action="store_true", help="write the tuning set's MDC to analysis/scanner_mdc.json")
+    ap.add_argument("--mdc-file", help="judge against the MDC stored here (analysis/scanner_mdc.json's 'mdc') "
+                                       "instead of the tuning bodies' (run none with --tune-bodies 0)")
+    ap.add_argument("--arms-crossed", action="store_true",
+                    help="the held-out bodies' forearms crossed in front of the chest (the same bodies otherwise)")
     args = ap.parse_args(argv)
+    if args.write_mdc and (args.mdc_file or args.arms_crossed):
+        ap.error("--write-mdc writes the tuning bodies' MDC: not with --mdc-file or --arms-crossed")
+    if not args.tune_bodies and not args.mdc_file:
+        ap.error("--tune-bodies 0 needs --mdc-file: the held-out bodies are judged against a tuning set's MDC")
     run = provenance(__file__, argv)
     commit = run["commit"]
     t0 = time.perf_counter()
     log = lambda msg: print(msg, flush=True)  # noqa: E731
     log(f"tuning bodies (seed {args.tune_seed}):")
     tune = run_set(args.tune_seed, args.tune_bodies, args.points, log)
-    mdc = mdc_from_index_pairs(repeat_pairs(tune))
-    log(f"held-out bodies (seed {args.report_seed}):")
-    report = run_set(args.report_seed, args.report_bodies, args.points, log)
+    if args.mdc_file:
+        stored = json.loads(Path(args.mdc_file).read_text(encoding="utf-8"))
+        if "mdc" not in stored:
+            raise SystemExit(f"{args.mdc_file}: no 'mdc' (an analysis/scanner_mdc.json is needed)")
+        mdc, run["mdc_source"] = stored["mdc"], f"{args.mdc_file}: {stored.get('source', '')}"
+    else:
+        mdc = mdc_from_index_pairs(repeat_pairs(tune))
+    log(f"held-out bodies (seed {args.report_seed}{', arms crossed' if args.arms_crossed else ''}):")
+    report = run_set(args.report_seed, args.report_bodies, args.points, log, args.arms_crossed)
+    run["arms_crossed"] = args.arms_crossed
     result = {**run, "seconds": time.perf_counter() - t0,
-              "tune": summarise(tune, mdc), "report": summarise(report, mdc), "mdc": mdc}
+              "tune": summarise(tune, mdc) if tune else None, "report": summarise(report, mdc), "mdc": mdc}
     for name in ("tune", "report"):
-        log(f"\n{name}: " + json.dumps(result[name], indent=1))
+        if result[name] is not None:
+            log(f"\n{name}: " + json.dumps(result[name], indent=1))
     if args.write_mdc:
         path = ROOT / "analysis" / "scanner_mdc.json"
         # the reconstructed re-scans' sets (bench_rescans.py --write-mdc) stay

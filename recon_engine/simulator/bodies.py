@@ -40,6 +40,8 @@ class Body:
     z_sacrum: float
     z_c7: float
     shoulders: np.ndarray | None = None  # (2, 3) the left and right shoulder joints (MakeHuman only)
+    # (2, 4, 3) the left and right arms' shoulder, elbow, wrist and middle fingertip joints (MakeHuman only)
+    arm_joints: np.ndarray | None = None
     dimples: np.ndarray | None = None  # (2, 3) bottoms of the left (+X) and right lumbar dimples, on the skin
 
 
@@ -126,7 +128,9 @@ def load_makehuman(stature_mm: float = 1550.0, subdivisions: int = 2, path: str 
         arm |= np.abs(centroids[:, 0]) > abs(s[0]) + 0.1 * scale
     torso = (centroids[:, 2] > z_sac - 30.0) & (centroids[:, 2] < z_c7) & ~arm
     shoulders = np.vstack([world(joint(f"{side}-shoulder")) for side in ("l", "r")])
-    return Body("makehuman", vertices, triangles, torso, spine, float(z_sac), float(z_c7), shoulders)
+    arm_joints = np.stack([np.vstack([world(joint(f"{side}-{n}")) for n in ("shoulder", "elbow", "hand", "finger-3-4")])
+                           for side in ("l", "r")])
+    return Body("makehuman", vertices, triangles, torso, spine, float(z_sac), float(z_c7), shoulders, arm_joints)
 
 
 def make_parametric(stature_mm: float = 1550.0, n_around: int = 360, n_up: int = 260) -> Body:
@@ -199,11 +203,15 @@ def shape_body(body: Body, cfg: SubjectConfig) -> Body:
     the truth (spine, landmarks behind C7 and the sacrum) follows the skin.
     Lengths in mm, world frame (the subject faces -Y, left +X).
     """
-    defaults = (1.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0)
+    defaults = (1.0, 1.0, 0.0, 0.0, 1.0, 0.0, False, 0.0, 0.0, 0.0)
     build = (cfg.build_width, cfg.build_depth, cfg.belly_mm, cfg.breasts_mm, cfg.hips, cfg.arm_abduction_deg,
-             cfg.neck_hair_mm, cfg.dimples_mm, cfg.pelvic_obliquity_mm)
+             cfg.arms_crossed, cfg.neck_hair_mm, cfg.dimples_mm, cfg.pelvic_obliquity_mm)
     if build == defaults:
         return body
+    if cfg.arms_crossed and (body.arm_joints is None or cfg.arm_abduction_deg):
+        raise ValueError("SubjectConfig.arms_crossed needs the MakeHuman body (torso='makehuman', the parametric "
+                         f"torso has no arms; this one is {body.name!r}) and arm_abduction_deg 0 (it is "
+                         f"{cfg.arm_abduction_deg})")
     V = body.vertices.copy()
     z = V[:, 2]
     L = body.z_c7 - body.z_sacrum
@@ -211,6 +219,8 @@ def shape_body(body: Body, cfg: SubjectConfig) -> Body:
     sy = np.interp(z, body.spine[:, 2], body.spine[:, 1])
     if body.shoulders is not None and cfg.arm_abduction_deg:
         V = _turn_arms(V, body, cfg.arm_abduction_deg)
+    if cfg.arms_crossed:
+        V = _cross_arms(V, body)
     front = np.clip(-(V[:, 1] - sy) / 60.0, 0.0, 1.0)  # 0 on the back, 1 on the front
     # the build: widths about the mid-sagittal plane, depths about the spine line
     hips = 1.0 + (cfg.hips - 1.0) * _bump(s, -0.5, -0.05, 0.35)
@@ -305,6 +315,69 @@ def _turn_arms(V: np.ndarray, body: Body, abduction_deg: float) -> np.ndarray:
         V = np.where(w[:, None] > 0, out, V)
         out = V.copy()
     return V
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation (3, 3) that turns direction ``a`` into direction ``b``."""
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    v, c = np.cross(a, b), float(a @ b)
+    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+
+
+def _smoothstep(x):
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def _cross_arms(V: np.ndarray, body: Body) -> np.ndarray:
+    """The arms folded in front of the chest, the forearms crossed (left over right), as a patient stands who
+    holds their arms: each upper arm turned about its shoulder so that the elbow comes forward beside the front
+    of the chest, each forearm (with its hand) turned about its elbow to point across the chest to the other
+    side. The limbs keep their lengths; the skin blends between the moved and the still parts over the shoulder
+    and the elbow (linear blend skinning). The forearms stand clear of the chest and belly by about 2 cm, and
+    hide the front of the trunk from the cameras in front: the analysis sees a front that is not the trunk's.
+    """
+    out = V.copy()
+    k_size = (body.z_c7 - body.z_sacrum) / 480.0  # the body's size against the 1550 mm one the lengths are for
+    torso_band = np.abs(V[:, 0]) < 110.0 * k_size
+    for k, side in enumerate((1.0, -1.0)):
+        S, E, W, F = body.arm_joints[k]
+        upper, fore = np.linalg.norm(E - S), np.linalg.norm(W - E)
+        # the skin of this arm: near its bones and beyond the trunk's side (the flank stays)
+        d_upper = _segment_distance(V, S, E)
+        d_fore = np.minimum(_segment_distance(V, E, W), _segment_distance(V, W, F))
+        # (below the armpit the hanging arm's inner side lies about at the shoulder joint's x)
+        lateral = (side * V[:, 0] - abs(S[0])) / k_size + 5.0
+        arm = (1.0 - _smoothstep((np.minimum(d_upper, d_fore) / k_size - 60.0) / 20.0)) * _smoothstep(lateral / 20.0)
+        # and everything far beyond the shoulder down to the fingertips (the thumb stands off the fingers' line;
+        # the hips never reach so far out; the feet, below, do)
+        arm = np.maximum(arm, _smoothstep((lateral - 75.0) / 30.0) * (V[:, 2] > F[2] - 80.0 * k_size))
+        # along the upper arm: 0 at the shoulder joint, blended in over the first quarter
+        t_upper = ((V - S) @ (E - S)) / upper ** 2
+        w_upper = arm * _smoothstep(t_upper / 0.25)
+        # the forearm side of the elbow, blended over 25 mm either side of it
+        t_elbow = ((V - E) @ (W - E)) / fore
+        w_fore = arm * _smoothstep((t_elbow / k_size + 25.0) / 50.0) * (d_fore < d_upper + 40.0 * k_size)
+        # where the elbow goes: forward beside the front of the chest at about its old height
+        z_e = S[2] - 0.78 * upper
+        band = torso_band & (np.abs(V[:, 2] - z_e) < 50.0 * k_size)
+        front = V[band, 1].min()
+        Et = np.array([side * 0.9 * abs(S[0]), front - 45.0 * k_size, 0.0])
+        Et[2] = S[2] - np.sqrt(max(upper ** 2 - (Et[0] - S[0]) ** 2 - (Et[1] - S[1]) ** 2, 1.0))
+        R_u = _rotation_between(E - S, Et - S)
+        E_new = S + R_u @ (E - S)
+        # the forearm across the chest to the other side, the left one above and in front of the right
+        target = np.array([-side * 0.95 * abs(S[0]), E_new[1] - 12.0 * k_size * side, E_new[2] + 22.0 * k_size * side])
+        R_f = _rotation_between(R_u @ (W - E), target - E_new) @ R_u
+        moved_upper = S + (V - S) @ R_u.T
+        moved_fore = E_new + (V - E) @ R_f.T
+        moved = (1.0 - w_fore)[:, None] * moved_upper + w_fore[:, None] * moved_fore
+        w = np.maximum(w_upper, w_fore)[:, None]
+        # each vertex belongs to one side's arm at most
+        mine = side * V[:, 0] > 0
+        out[mine] = ((1.0 - w) * V + w * moved)[mine]
+    return out
 
 
 # --- the curve ----------------------------------------------------------------

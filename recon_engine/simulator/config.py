@@ -81,6 +81,9 @@ class SubjectConfig:
     breasts_mm: float = 0.0  # forward bulge of each breast (an adolescent girl: 15-35)
     hips: float = 1.0  # across scale at the pelvis, blending to 1 at the waist (a girl: 1.05-1.12)
     arm_abduction_deg: float = 0.0  # arms turned about the shoulders: + raised away from the trunk, - hanging closer
+    # the forearms crossed in front of the chest (the MakeHuman body; arm_abduction_deg must be 0): the cameras in
+    # front see forearms, not the front of the trunk
+    arms_crossed: bool = False
     neck_hair_mm: float = 0.0  # hair over the back of the neck down to C7 (bulk, mm; 0: none)
     # the lumbar dimples (skin over the posterior superior iliac spines): depth of each hollow (slim 3-5 mm,
     # heavy 0-1.5: fat fills them), half their distance apart, and their height above the sacral point
