@@ -482,7 +482,41 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         if unsure:
             withhold(report, f"the pelvic figures are not measurable on this scan: the lumbar dimples could not be "
                              f"found with confidence ({auto['dimple_method']}); mark them", PELVIC, landmarks=unsure)
+        unread = unread_apex_levels(sections)
+        if unread and report.get("surface_rotation_deg", {}).get("max") is not None:
+            withhold(report, "the surface rotation is not measurable on this scan: the trunk's horizontal sections "
+                             "could not be read where the back turns most (levels "
+                             + ", ".join(f"{lo:.2f}-{hi:.2f}" for lo, hi in unread) + " of SP to VP): their outline "
+                             "there is not the trunk's alone (arms held across the chest or pressed against the "
+                             "flanks, or a flank unseen); scan again with the arms hanging free",
+                     ("surface_rotation_deg",))
+            for r in report["regions"].values():
+                r["surface_rotation_deg"] = {k: None for k in r["surface_rotation_deg"]}
     return TorsoAnalysis(report, frame, dmap, lm_rig, asym, sections)
+
+
+def unread_apex_levels(sections: list, min_deg: float = 2.0) -> list:
+    """The runs of unread sections (``[(first level, last level), ...]``) that hold a side's apex as the back's
+    midline shows it: the section where the midline skin rotation is largest towards that side (at least
+    ``min_deg``) has no surface rotation. There the surface rotation's maximum would be another level's, or the
+    other side's curve, and nothing on the scan tells a reader so."""
+    rot = np.array([s["surface_rotation_deg"] for s in sections], float)
+    mid = np.array([s["midline_rotation_deg"] for s in sections], float)
+    levels = np.array([s["level"] for s in sections], float)
+    out = []
+    for sign in (1.0, -1.0):
+        v = np.where(np.isfinite(mid), sign * mid, -np.inf)
+        k = int(np.argmax(v))
+        if v[k] < min_deg or np.isfinite(rot[k]):
+            continue
+        lo, hi = k, k
+        while lo > 0 and not np.isfinite(rot[lo - 1]):
+            lo -= 1
+        while hi < len(rot) - 1 and not np.isfinite(rot[hi + 1]):
+            hi += 1
+        if (levels[lo], levels[hi]) not in out:
+            out.append((float(levels[lo]), float(levels[hi])))
+    return out
 
 
 # figures that read the back in the patient frame: with the back and front (and so left and right) in doubt,

@@ -62,19 +62,26 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, region: np.ndarray
     probe = np.concatenate([P + 0.5 * N, N], axis=1).astype(np.float32)
     hits = scene.count_intersections(o3d.core.Tensor(probe)).numpy()
     N[hits % 2 == 1] *= -1
-    seen = np.zeros(len(P), bool)
     cos_max = np.cos(np.radians(max_incidence_deg))
-    for arm in cams:
-        count = np.zeros(len(P), int)
-        for C in arm:
+    # each camera's line of sight to each sample: unoccluded, and at what angle to the normal
+    clear = np.zeros((cams.shape[0], cams.shape[1], len(P)), bool)
+    cosine = np.zeros(clear.shape)
+    for a, arm in enumerate(cams):
+        for c, C in enumerate(arm):
             v = C - P
             dist = np.linalg.norm(v, axis=1)
             v /= dist[:, None]
-            facing = np.sum(v * N, axis=1) >= cos_max
             rays = np.concatenate([P + 0.2 * v, v], axis=1).astype(np.float32)
-            t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-            count += facing & (t_hit >= dist - 1.0)
-        seen |= count >= min_cameras
+            clear[a, c] = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy() >= dist - 1.0
+            cosine[a, c] = np.sum(v * N, axis=1)
+    # a camera that sees the skin sees its outer side: the normal turns towards the cameras with a clear line of
+    # sight. Where the mesh passes through itself (crossed forearms, an arm pressed into the flank) the parity
+    # test above flips normals, and a reconstruction would never (its normals face the cameras that saw them)
+    towards = np.sign(np.sum(np.where(clear, cosine, 0.0), axis=(0, 1)))
+    flip = towards < 0
+    N[flip] *= -1
+    cosine[:, :, flip] *= -1
+    seen = ((clear & (cosine >= cos_max)).sum(axis=1) >= min_cameras).any(axis=0)
     P, N = P[seen], N[seen]
     if len(P) > n_points:
         keep = rng.choice(len(P), n_points, replace=False)
