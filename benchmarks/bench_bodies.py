@@ -245,6 +245,8 @@ def same_side_error(report: dict, key: str, truth: float):
     entry = report.get(base)
     if leaf != "max" or not isinstance(entry, dict) or not ("right" in entry or "left" in entry):
         return None
+    if entry.get("max") is None:  # withheld on this scan (not measurable): no size to compare
+        return None
     side = "right" if truth >= 0 else "left"
     size = (entry.get(side) or {}).get("size")
     size = float(size) if isinstance(size, (int, float)) else 0.0  # no extreme on that side: it read nothing there
@@ -309,6 +311,9 @@ def summarise(bodies, mdc) -> dict:
               if k in c]
         if ch:
             rows["rescan_change"] = {"mean_abs": float(np.mean(np.abs(ch))), "max_abs": float(np.max(np.abs(ch)))}
+        # scans whose final analysis (after any VP / SP mark) still withholds it: the pelvic figures without marked
+        # dimples, the surface rotation where the sections at an apex cannot be read
+        rows["withheld"] = f"{sum(k.split('.')[0] in ((s['report'].get('not_measurable') or {}).get('indices') or []) for s in measured)}/{len(measured)}"
         m = (mdc.get(k) or {}).get("mdc")
         rows["mdc"] = m
         for name in ("rescan", "plus5", "plus10"):
