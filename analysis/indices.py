@@ -482,7 +482,7 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         if unsure:
             withhold(report, f"the pelvic figures are not measurable on this scan: the lumbar dimples could not be "
                              f"found with confidence ({auto['dimple_method']}); mark them", PELVIC, landmarks=unsure)
-        unread = unread_apex_levels(sections)
+        unread = unread_apex_levels(sections, min_span=ic.unread_apex_min_span)
         if unread and report.get("surface_rotation_deg", {}).get("max") is not None:
             withhold(report, "the surface rotation is not measurable on this scan: the trunk's horizontal sections "
                              "could not be read where the back turns most (levels "
@@ -495,11 +495,11 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
     return TorsoAnalysis(report, frame, dmap, lm_rig, asym, sections)
 
 
-def unread_apex_levels(sections: list, min_deg: float = 2.0) -> list:
-    """The runs of unread sections (``[(first level, last level), ...]``) that hold a side's apex as the back's
-    midline shows it: the section where the midline skin rotation is largest towards that side (at least
-    ``min_deg``) has no surface rotation. There the surface rotation's maximum would be another level's, or the
-    other side's curve, and nothing on the scan tells a reader so."""
+def unread_apex_levels(sections: list, min_deg: float = 2.0, min_span: float = 0.0) -> list:
+    """The runs of unread sections (``[(first level, last level), ...]``, spanning at least ``min_span`` of
+    SP-VP) that hold a side's apex as the back's midline shows it: the section where the midline skin rotation is
+    largest towards that side (at least ``min_deg``) has no surface rotation. There the surface rotation's
+    maximum would be another level's, or the other side's curve, and nothing on the scan tells a reader so."""
     rot = np.array([s["surface_rotation_deg"] for s in sections], float)
     mid = np.array([s["midline_rotation_deg"] for s in sections], float)
     levels = np.array([s["level"] for s in sections], float)
@@ -514,7 +514,7 @@ def unread_apex_levels(sections: list, min_deg: float = 2.0) -> list:
             lo -= 1
         while hi < len(rot) - 1 and not np.isfinite(rot[hi + 1]):
             hi += 1
-        if (levels[lo], levels[hi]) not in out:
+        if levels[hi] - levels[lo] >= min_span - 1e-9 and (levels[lo], levels[hi]) not in out:
             out.append((float(levels[lo]), float(levels[hi])))
     return out
 

@@ -57,6 +57,10 @@ def test_it_names_the_unread_run_that_holds_an_apex():
     mid = [1, 3, 6, 9, 12, 9, 6, 3, 1, -2, -5, -3]
     rot = [1, 3, 6, nan, nan, nan, 6, 3, 1, -2, -5, -3]
     assert unread_apex_levels(_sections(rot, mid)) == [(0.125, 0.175)]
+    # a short run beside well-read neighbours (a large rotation's most turned section) is not withheld
+    assert unread_apex_levels(_sections(rot, mid), min_span=0.1) == []
+    assert unread_apex_levels(_sections([1, nan, nan, nan, nan, nan, 6, 3, 1, -2, -5, -3], mid),
+                              min_span=0.1) == [pytest.approx((0.075, 0.175))]
     # the apex read, unread sections elsewhere: nothing to withhold
     rot = [1, 3, 6, 9, 12, 9, nan, nan, 1, -2, -5, -3]
     assert unread_apex_levels(_sections(rot, mid)) == []
@@ -65,23 +69,29 @@ def test_it_names_the_unread_run_that_holds_an_apex():
     assert unread_apex_levels(_sections(rot, [*mid[:9], -0.5, -1.5, -1.0])) == []
 
 
+# the held-out body (bench_bodies.py, seed 200, body 1) whose +10 deg visit, its forearms crossed, read its
+# surface rotation 16.6 deg to the left: its lumbar curve, the right thoracic apex (21.8 deg) unread
+HEAVY_BOY = dict(stature_mm=1682.0, build_width=1.11, build_depth=1.22, belly_mm=22.3, curve="S", thoracic_apex=0.64,
+                 dimples_mm=1.5)
+
+
 @pytest.mark.parametrize("crossed", [False, True])
 def test_a_scan_with_the_arms_across_the_chest_withholds_the_surface_rotation(crossed):
     base = preset("paper")
-    cfg = replace(base, subject=replace(SubjectConfig(), arms_crossed=crossed, thoracic_apex=0.68))
-    s = posed_subject(cfg, posture=posture_like(cfg, 14.0, 22.0))
+    cfg = replace(base, subject=replace(SubjectConfig(), arms_crossed=crossed, **HEAVY_BOY))
+    s = posed_subject(cfg, posture=posture_like(cfg, 21.8, 34.9))
     z = s["vertices"][s["triangles"]].mean(axis=1)[:, 2]
     lm = s["landmarks"]
-    region = (z > lm["sacral_point"][2] - 150.0) & (z < lm["vertebra_prominens"][2] + 150.0)
-    rep = analyse_torso(scan_surface(s["vertices"], s["triangles"], region, n_points=60_000, seed=5)).report
+    region = (z > lm["sacral_point"][2] - 150.0) & (z < lm["vertebra_prominens"][2] + 160.0)
+    rep = analyse_torso(scan_surface(s["vertices"], s["triangles"], region, n_points=80_000, seed=5)).report
     # the back's midline is read the same either way: its skin rotation at the thoracic apex is the curve's
-    mid = [x["midline_rotation_deg"] for x in rep["sections"] if 0.6 <= x["level"] <= 0.75]
-    assert max(mid) > 10.0
+    mid = [x["midline_rotation_deg"] for x in rep["sections"] if 0.55 <= x["level"] <= 0.75]
+    assert max(mid) > 15.0
     if crossed:
         assert rep["surface_rotation_deg"]["max"] is None and rep["surface_rotation_deg"]["right"] is None
         assert "surface_rotation_deg" in rep["not_measurable"]["indices"]
         assert "arms held across the chest" in rep["not_measurable"]["reason"]
         assert all(r["surface_rotation_deg"]["max"] is None for r in rep["regions"].values())
     else:
-        assert rep["surface_rotation_deg"]["right"]["size"] > 10.0
+        assert rep["surface_rotation_deg"]["right"]["size"] > 18.0
         assert "surface_rotation_deg" not in (rep.get("not_measurable") or {}).get("indices", [])
