@@ -514,7 +514,7 @@ def unread_apex_levels(sections: list, min_deg: float = 2.0, min_span: float = 0
             lo -= 1
         while hi < len(rot) - 1 and not np.isfinite(rot[hi + 1]):
             hi += 1
-        if levels[hi] - levels[lo] >= min_span - 1e-9 and (levels[lo], levels[hi]) not in out:
+        if levels[hi] - levels[lo] >= min_span - 1e-6 and (levels[lo], levels[hi]) not in out:
             out.append((float(levels[lo]), float(levels[hi])))
     return out
 
