@@ -335,8 +335,11 @@ def _cross_arms(V: np.ndarray, body: Body) -> np.ndarray:
     holds their arms: each upper arm turned about its shoulder so that the elbow comes forward beside the front
     of the chest, each forearm (with its hand) turned about its elbow to point across the chest to the other
     side. The limbs keep their lengths; the skin blends between the moved and the still parts over the shoulder
-    and the elbow (linear blend skinning). The forearms stand clear of the chest and belly by about 2 cm, and
-    hide the front of the trunk from the cameras in front: the analysis sees a front that is not the trunk's.
+    and the elbow (linear blend skinning). The forearms stand clear of the chest and belly in front of the
+    sternum (at least 5 mm in tests/test_simulator_arms_crossed.py's builds) and hide the trunk's front from the
+    cameras in front: the analysis sees a front that is not the trunk's. The upper arms may pass a few mm into a
+    slim body's flanks (the skin is not pressed in), and the forearms into each other: surfaces inside the body
+    are never seen, and scan_surface orients normals by the cameras that see them.
     """
     out = V.copy()
     k_size = (body.z_c7 - body.z_sacrum) / 480.0  # the body's size against the 1550 mm one the lengths are for
