@@ -17,6 +17,11 @@ repeatability (the MDC of every index from its same-day re-scans: ``--write-mdc`
 the analysis's defaults may be chosen; ``report`` (held out, ``--report-seed``, default 200) is measured
 against that MDC.
 
+``--arms-crossed`` draws the held-out bodies (and their scans and clicks) exactly as without it, each with its
+forearms crossed in front of the chest instead of its drawn arm abduction: a paired comparison. ``--mdc-file``
+judges against a stored MDC (``analysis/scanner_mdc.json``) instead of running the tuning bodies
+(``--tune-bodies 0``).
+
 A scan on which the analysis asks for a trunk landmark (VP or SP: "not measurable on this scan: mark the
 landmark") is analysed again with that landmark marked as a clinician would, the simulator's point plus a
 click's error (``CLICK_SIGMA_MM`` per axis, its own random stream), as ``bench_rescans.py`` does; it counts
