@@ -78,8 +78,8 @@ def depth_map(P: np.ndarray, N: np.ndarray, cfg: IndicesConfig, half_width_mm: f
     np.maximum.at(top, (iz, ix), B[:, 1])
     # and as far as the smoothing reaches (3 sigma): an empty cell beside the back must not take the value of
     # skin far in front of it (the sides of forearms crossed before the chest face partly backwards; they moved
-    # the back's midline by 14 mm and its slope there to 56 deg on a held-out body). Skin whose normal is within
-    # back_normal_deg of posterior rises by at most tan(back_normal_deg) per mm across: 100 mm over 3 sigma at
+    # the back's midline by 14 mm and its slope there to 56 deg on a body of seed 200). Skin whose normal is within
+    # back_normal_deg of posterior rises by at most tan(back_normal_deg) per mm across: 102 mm over 3 sigma at
     # 80 deg and 18 mm, so the back's own steep flanks stay
     sigma = cfg.smooth_mm / g
     reach = int(np.ceil(3 * sigma))

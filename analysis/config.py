@@ -79,8 +79,9 @@ class IndicesConfig:
     # the surface rotation is withheld where the unread sections around a side's apex (the midline skin rotation's
     # largest) span at least this fraction of SP-VP (indices.unread_apex_levels). Chosen on the tuning bodies (seed
     # 100, true surfaces, arms as drawn): four +10 deg scans have such runs, 0.05-0.1 long (arms hanging against
-    # the flanks), their neighbours reading the apex's side 3-5 deg under the truth; and on seed 200's bodies with
-    # their forearms crossed (body 1's +10 deg scan: 0.2, where the largest read value was the other side's curve)
+    # the flanks); on three of them (thoracic apexes) the neighbours read the apex's side 2.9-4.5 deg under the
+    # midline skin rotation's peak; and on seed 200's bodies with their forearms crossed (body 1's +10 deg scan:
+    # 0.2, where the largest read value was the other side's curve)
     unread_apex_min_span: float = 0.125
     # Gaussian smoothing (sigma, mm along the height) of the sections' surface rotation and midline skin rotation
     # before their largest values are taken, as the line of symmetry is smoothed: one 8 mm section's rotation

@@ -13,8 +13,8 @@ from contextlib import contextmanager
 
 from celery import Celery, signals
 
-# the engine's one mechanism for a process's thread pools (THREAD_ENV: the variables it sets)
-from recon_engine.parallel import THREAD_ENV, limit_process_threads, set_opencv_threads  # noqa: F401
+# the engine's one mechanism for a process's thread pools
+from recon_engine.parallel import limit_process_threads, set_opencv_threads
 
 os.environ.setdefault("DJANGO_SETTINGS_MODULE", "clinic.settings")
 

@@ -17,9 +17,9 @@ from threadpoolctl import threadpool_info
 
 from clinic import celery as worker
 from clinic import pipeline, tasks
-from recon_engine.parallel import cores
+from recon_engine.parallel import THREAD_ENV, cores
 
-ENV = (worker.TASK_THREADS_ENV, *worker.THREAD_ENV)
+ENV = (worker.TASK_THREADS_ENV, *THREAD_ENV)
 
 
 @pytest.fixture
@@ -87,7 +87,7 @@ def test_a_prefork_workers_pool_processes_get_their_share():
         "    os._exit(0)\n"
         "sys.exit(os.waitpid(pid, 0)[1])\n")
     env = {**os.environ, "DJANGO_SETTINGS_MODULE": "clinic.settings"}
-    for k in (worker.TASK_THREADS_ENV, *worker.THREAD_ENV):
+    for k in (worker.TASK_THREADS_ENV, *THREAD_ENV):
         env.pop(k, None)
     out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, timeout=300,
                          cwd=Path(__file__).resolve().parents[1])

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..bundle import rodrigues
 from .config import SubjectConfig
 
 # Shipped with the package (CC0, gzip-compressed): a fresh clone needs nothing beside it.
@@ -39,7 +40,6 @@ class Body:
     spine: np.ndarray  # (K, 3) spine line from sacrum to C7, increasing Z
     z_sacrum: float
     z_c7: float
-    shoulders: np.ndarray | None = None  # (2, 3) the left and right shoulder joints (MakeHuman only)
     # (2, 4, 3) the left and right arms' shoulder, elbow, wrist and middle fingertip joints (MakeHuman only)
     arm_joints: np.ndarray | None = None
     dimples: np.ndarray | None = None  # (2, 3) bottoms of the left (+X) and right lumbar dimples, on the skin
@@ -127,10 +127,9 @@ def load_makehuman(stature_mm: float = 1550.0, subdivisions: int = 2, path: str 
         arm |= _segment_distance(centroids, e, h) < radius
         arm |= np.abs(centroids[:, 0]) > abs(s[0]) + 0.1 * scale
     torso = (centroids[:, 2] > z_sac - 30.0) & (centroids[:, 2] < z_c7) & ~arm
-    shoulders = np.vstack([world(joint(f"{side}-shoulder")) for side in ("l", "r")])
     arm_joints = np.stack([np.vstack([world(joint(f"{side}-{n}")) for n in ("shoulder", "elbow", "hand", "finger-3-4")])
                            for side in ("l", "r")])
-    return Body("makehuman", vertices, triangles, torso, spine, float(z_sac), float(z_c7), shoulders, arm_joints)
+    return Body("makehuman", vertices, triangles, torso, spine, float(z_sac), float(z_c7), arm_joints)
 
 
 def make_parametric(stature_mm: float = 1550.0, n_around: int = 360, n_up: int = 260) -> Body:
@@ -217,7 +216,7 @@ def shape_body(body: Body, cfg: SubjectConfig) -> Body:
     L = body.z_c7 - body.z_sacrum
     s = (z - body.z_sacrum) / L  # spine level: sacrum 0, C7 1
     sy = np.interp(z, body.spine[:, 2], body.spine[:, 1])
-    if body.shoulders is not None and cfg.arm_abduction_deg:
+    if body.arm_joints is not None and cfg.arm_abduction_deg:
         V = _turn_arms(V, body, cfg.arm_abduction_deg)
     if cfg.arms_crossed:
         V = _cross_arms(V, body)
@@ -303,7 +302,7 @@ def _turn_arms(V: np.ndarray, body: Body, abduction_deg: float) -> np.ndarray:
     """The arms turned about their shoulders in the coronal plane (+: raised), blended over the armpit."""
     out = V.copy()
     for k, side in enumerate((1.0, -1.0)):
-        sh = body.shoulders[k]
+        sh = body.arm_joints[k, 0]
         lateral = side * (V[:, 0] - sh[0])  # beyond the shoulder joint, outwards
         w = np.clip(lateral / 60.0, 0.0, 1.0) * (V[:, 2] > sh[2] - 700.0) * (V[:, 2] < sh[2] + 80.0)
         w *= side * V[:, 0] > 60.0  # never the trunk's middle
@@ -318,11 +317,11 @@ def _turn_arms(V: np.ndarray, body: Body, abduction_deg: float) -> np.ndarray:
 
 
 def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The smallest rotation (3, 3) that turns direction ``a`` into direction ``b``."""
+    """The smallest rotation (3, 3) that turns direction ``a`` into direction ``b``: about their common normal."""
     a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
-    v, c = np.cross(a, b), float(a @ b)
-    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+    axis = np.cross(a, b)
+    s = np.linalg.norm(axis)
+    return rodrigues(axis / max(s, 1e-12) * np.arctan2(s, a @ b))
 
 
 def _smoothstep(x):
