@@ -367,16 +367,14 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         # NaN where not mirror-symmetric enough to read (an arm touching the trunk, a flank unseen)
         sec_rot, agreement = section_symmetry(P[sec, :2], x0, N[sec, :2], ic.section_iterations,
                                               ic.section_min_agreement)
-        spine_rot = sec_rot if ic.spine_rotation == "section" and np.isfinite(sec_rot) else rot
-        x_spine = x0 - ic.spine_depth_mm * np.sin(np.radians(spine_rot))
         hump, span = prominence_difference(dmap.x, row, x0, ic.hump_range_mm)
         sections.append({
             "level": round(float(s), 4), "z_mm": float(z),
             "symmetry_point_mm": float(x0), "symmetry_residual_mm": float(misfit),
             # the lateral deviation: the line of symmetry's, measured on the skin
             "lateral_deviation_mm": float(-(x0 - x_line)),
-            # Formetric-style spine midline: the symmetry line moved by a model depth of the spine
-            "spine_lateral_deviation_mm": float(-(x_spine - x_line)),
+            # Formetric-style spine midline: the symmetry line moved by a model depth of the spine (below)
+            "spine_lateral_deviation_mm": float("nan"),
             # the whole transverse section's rotation (a rib hump tilts it far less than the midline skin)
             "surface_rotation_deg": sec_rot,
             "section_agreement": agreement,  # share of the section's mirror image within 5 mm of its outline
@@ -388,6 +386,17 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
         })
     if len(sections) < 3:
         raise ValueError("too few horizontal sections of the back could be read")
+    # the spine midline: the symmetry line moved towards the patient's front by the spine's model depth, turned by
+    # the section's rotation. An unread section takes the rotation interpolated from the read ones around it: the
+    # skin's rotation at the midline, its fall-back before, read 2-3 deg more than the section's beside an arm
+    # (held-out seed 300, body 7), and a re-scan that read other sections moved the spine line by 2 mm there
+    mid_rot = np.array([x["midline_rotation_deg"] for x in sections])
+    spine_rot = mid_rot
+    if ic.spine_rotation == "section":
+        spine_rot = fill_between([x["z_mm"] for x in sections], [x["surface_rotation_deg"] for x in sections])
+        spine_rot = np.where(np.isfinite(spine_rot), spine_rot, mid_rot)  # beyond the first and last read ones
+    for x, r in zip(sections, spine_rot):
+        x["spine_lateral_deviation_mm"] = float(x["lateral_deviation_mm"] + ic.spine_depth_mm * np.sin(np.radians(r)))
     if ic.rotation_smooth_mm > 0:  # see IndicesConfig.rotation_smooth_mm
         zs = [s["z_mm"] for s in sections]
         for key in ("surface_rotation_deg", "midline_rotation_deg"):
