@@ -44,6 +44,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -187,7 +188,8 @@ def model_fits(seeds) -> dict:
     return out
 
 
-def synthetic_paper(seed: int, lens: str, free_k3: bool = False, noise_px: float = 0.0675) -> dict:
+def synthetic_paper(seed: int, lens: str, free_k3: bool = False, noise_px: float = 0.0675,
+                    poses: int | None = None, no_decentring: bool = False) -> dict:
     """Paper scale without rendering: the engine's adjustment on corners projected through the true lens.
 
     The paper preset's installation and test-field poses for ``seed`` (the
@@ -199,13 +201,21 @@ def synthetic_paper(seed: int, lens: str, free_k3: bool = False, noise_px: float
     ``free_k3``) calibrates; the result's image error against the true lens
     and the 3D error of working-volume points intersected from each arm's
     cameras (true-lens projections, no noise) show the model error alone,
-    without matching or registration.
+    without matching or registration. ``poses``: how many test-field poses
+    (default: the preset's); the first poses are the same whatever the number.
+    ``no_decentring``: lenses without decentring (p1 = p2 = 0) and the adjustment holding p1 and p2 at 0: how
+    well the principal point is determined when decentring need not be estimated beside it.
     """
     from recon_engine import bundle
     from recon_engine.camera import Camera, pixel_to_ray
     from recon_engine.simulator.testfield import draw_poses, make_tower, surveyed
 
     cfg = scenario_cfg("paper", seed, lens)
+    if poses is not None:
+        cfg = replace(cfg, testfield=replace(cfg.testfield, poses=poses))
+    if no_decentring:
+        cfg = replace(cfg, camera=replace(cfg.camera, p_sigma=0.0))
+    fixed = (() if free_k3 else ("k3",)) + (("p1", "p2") if no_decentring else ())
     cc, tfc = cfg.camera, cfg.testfield
     rng_rig, rng_tf, _, _ = (np.random.default_rng(s) for s in np.random.SeedSequence(cfg.seed).spawn(4))
     rng_poses = np.random.default_rng(np.random.SeedSequence([cfg.seed, 1000 + cfg.session]).spawn(4)[0])
@@ -245,7 +255,7 @@ def synthetic_paper(seed: int, lens: str, free_k3: bool = False, noise_px: float
     # without corner noise the survey is exact too: what remains is the model error alone
     points = (corners if noise_px == 0 else np.array([tf.markers[i] for i in ids])).reshape(-1, 3)
     pb = bundle.Problem(np.vstack(uv), np.concatenate(ci), np.concatenate(pi), np.concatenate(qi),
-                        np.concatenate(wi), cams0, pose0, points, 0.1, tf.sigma_mm, () if free_k3 else ("k3",))
+                        np.concatenate(wi), cams0, pose0, points, 0.1, tf.sigma_mm, fixed)
     sol = bundle.adjust(pb)
     est = {c: Camera(cc.width, cc.height, *sol.cams[i, :4], sol.cams[i, 4:9], bundle.rodrigues(sol.cams[i, 9:12]),
                      sol.cams[i, 12:15]) for i, c in enumerate(cam_ids)}
@@ -277,7 +287,9 @@ def synthetic_paper(seed: int, lens: str, free_k3: bool = False, noise_px: float
         X = np.linalg.solve(A[sel], b[sel][..., None])[..., 0]
         errs.append(np.linalg.norm(X - pts[sel], axis=1))
     e = np.concatenate(errs)
-    return {"seed": seed, "lens": lens, "k3": "free" if free_k3 else "fixed", "observations": int(len(pb.uv)),
+    return {"seed": seed, "lens": lens, "k3": "free" if free_k3 else "fixed", "poses": int(tfc.poses),
+            "decentring": "none, held at 0" if no_decentring else "estimated",
+            "observations": int(len(pb.uv)),
             "iterations": int(sol.iterations), "converged": bool(sol.converged),
             "residual_rms_px_median": float(np.median(res)), "sigma0": float(sol.sigma0),
             "principal_point_error_px_median": float(np.median(pp)),
@@ -301,6 +313,10 @@ def main() -> int:
                     help="only the paper-scale adjustment on synthetic corners (no rendering; see synthetic_paper)")
     ap.add_argument("--noise-px", type=float, nargs="+", default=[0.0675],
                     help="corner noise of --synthetic-paper (px, 1 sigma; 0: the model error alone)")
+    ap.add_argument("--poses", type=int, nargs="+", default=[None],
+                    help="test-field poses of --synthetic-paper (default: the preset's, 4)")
+    ap.add_argument("--no-decentring", action="store_true",
+                    help="--synthetic-paper with lenses without decentring, p1 and p2 held at 0 (figures only)")
     ap.add_argument("--free-k3", action="store_true", help="also calibrate with k3 estimated (figures only)")
     ap.add_argument("--json", default=None, help="where to write the results (default OUT/bench_lens.json)")
     args = ap.parse_args()
@@ -316,10 +332,11 @@ def main() -> int:
                     for free in ((False, True) if args.free_k3 else (False,)):
                         if noise == 0 and lens == "old" and not free:
                             continue  # the engine's model exactly, no noise: nothing to measure
-                        row = synthetic_paper(seed, lens, free, noise)
-                        result["synthetic_paper"].append({**row, "noise_px": noise})
-                        print(json.dumps(result["synthetic_paper"][-1]), flush=True)
-                        json_path.write_text(json.dumps(result, indent=1))
+                        for n_poses in args.poses:
+                            row = synthetic_paper(seed, lens, free, noise, n_poses, args.no_decentring)
+                            result["synthetic_paper"].append({**row, "noise_px": noise})
+                            print(json.dumps(result["synthetic_paper"][-1]), flush=True)
+                            json_path.write_text(json.dumps(result, indent=1))
         return 0
     if args.model_fit:
         result["paper_model_fit"] = model_fits(args.seeds)
