@@ -520,9 +520,7 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
                              + ", ".join(f"{lo:.2f}-{hi:.2f}" for lo, hi in unread) + " of SP to VP): their outline "
                              "there is not the trunk's alone (arms held across the chest or pressed against the "
                              "flanks, or a flank unseen); scan again with the arms hanging free",
-                     ("surface_rotation_deg",))
-            for r in report["regions"].values():
-                r["surface_rotation_deg"] = {k: None for k in r["surface_rotation_deg"]}
+                     ("surface_rotation_deg",), in_regions=True)
     return TorsoAnalysis(report, frame, dmap, lm_rig, asym, sections)
 
 
@@ -568,14 +566,20 @@ COBB_NOTE = ("estimates of the curves' Cobb angles from the back's surface, not 
 LANDMARKED = SIDED + ("trunk_length_mm", "kyphotic_angle_deg", "lordotic_angle_deg", "sagittal_levels")
 
 
-def withhold(report: dict, reason: str, keys=SIDED, landmarks=()) -> dict:
+def withhold(report: dict, reason: str, keys=SIDED, landmarks=(), in_regions: bool = False) -> dict:
     """Replace the figures ``keys`` of an indices report by None, in place, and say why (and which landmarks
-    a clinician should mark)."""
+    a clinician should mark). ``in_regions``: the same figures of every region too (a figure withheld over the
+    whole trunk cannot be told in a part of it either)."""
+    def blank(d, key):
+        v = d[key]
+        d[key] = {k: None for k in v} if isinstance(v, dict) and key not in NESTED else None
+
     for key in keys:
-        if key not in report:
-            continue
-        v = report[key]
-        report[key] = {k: None for k in v} if isinstance(v, dict) and key not in NESTED else None
+        if key in report:
+            blank(report, key)
+        for region in (report.get("regions") or {}).values() if in_regions else ():
+            if key in region:
+                blank(region, key)
     before = report.get("not_measurable")
     if before:  # a second reason (e.g. the dimples after the trunk's ends): both are told
         report["not_measurable"] = {

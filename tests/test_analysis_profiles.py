@@ -143,3 +143,16 @@ def test_it_tells_both_reasons_when_two_kinds_of_figure_are_withheld():
     assert nm["indices"] == ["hump_mm", "pelvic_obliquity_mm"]
     assert "facing" in nm["reason"] and "dimples" in nm["reason"]
     assert nm["mark"] == ["vertebra_prominens", "dimple_left"]
+
+
+def test_a_figure_withheld_in_its_regions_too_leaves_the_others():
+    def rep():
+        return {"surface_rotation_deg": {"rms": 1.0, "max": 2.0},
+                "regions": {"thoracic": {"surface_rotation_deg": {"rms": 1.0, "max": 2.0},
+                                         "lateral_deviation_mm": {"rms": 3.0, "max": 4.0}}}}
+    r = withhold(rep(), "the apex is unread", ("surface_rotation_deg",), in_regions=True)
+    assert r["surface_rotation_deg"] == {"rms": None, "max": None}
+    assert r["regions"]["thoracic"]["surface_rotation_deg"] == {"rms": None, "max": None}
+    assert r["regions"]["thoracic"]["lateral_deviation_mm"] == {"rms": 3.0, "max": 4.0}
+    kept = withhold(rep(), "the apex is unread", ("surface_rotation_deg",))
+    assert kept["regions"]["thoracic"]["surface_rotation_deg"]["max"] == 2.0
