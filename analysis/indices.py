@@ -100,6 +100,13 @@ def fill_between(z, v) -> np.ndarray:
     return v
 
 
+def unread_runs(v) -> list:
+    """``[(first, last), ...]``: the index ranges (inclusive) of the runs of NaN in ``v``."""
+    bad = ~np.isfinite(np.asarray(v, float))
+    edges = np.diff(np.r_[0, bad.astype(int), 0])
+    return list(zip(np.flatnonzero(edges == 1).tolist(), (np.flatnonzero(edges == -1) - 1).tolist()))
+
+
 def _cobb_sides(cobb: dict | None, z_sp: float, z_vp: float) -> dict:
     """``{"max", "right", "left"}`` of the Cobb estimates (:func:`analysis.profiles.cobb_estimate`) in the
     shape of :func:`_summary`: the major curve signed (+ convex right), each side's largest with its level."""
@@ -387,13 +394,21 @@ def analyse_torso(torso: Torso, cfg: AnalysisConfig | None = None, landmarks: di
     if len(sections) < 3:
         raise ValueError("too few horizontal sections of the back could be read")
     # the spine midline: the symmetry line moved towards the patient's front by the spine's model depth, turned by
-    # the section's rotation. An unread section takes the rotation interpolated from the read ones around it: the
-    # skin's rotation at the midline, its fall-back before, read 2-3 deg more than the section's beside an arm
-    # (held-out seed 300, body 7), and a re-scan that read other sections moved the spine line by 2 mm there
+    # the section's rotation. A short run of unread sections (under the span at which the surface rotation is
+    # withheld) takes the rotation interpolated from the read sections at its ends: the skin's rotation at the
+    # midline read 2-3 deg more than the section's beside an arm (seed 300, body 7), and a re-scan that read
+    # other sections moved the spine line by 2 mm there. A longer run (forearms across the chest) keeps the
+    # midline's rotation, whose shape follows the curve through its apex where a straight line would cut it off
+    # (interpolated there too, the Cobb estimates of seed 200's and 300's crossed bodies erred 0.2 deg more)
     mid_rot = np.array([x["midline_rotation_deg"] for x in sections])
     spine_rot = mid_rot
     if ic.spine_rotation == "section":
-        spine_rot = fill_between([x["z_mm"] for x in sections], [x["surface_rotation_deg"] for x in sections])
+        sec_rot = np.array([x["surface_rotation_deg"] for x in sections])
+        spine_rot = fill_between([x["z_mm"] for x in sections], sec_rot)
+        levels = np.array([x["level"] for x in sections])
+        for lo, hi in unread_runs(sec_rot):
+            if levels[hi] - levels[lo] >= ic.unread_apex_min_span - 1e-6:
+                spine_rot[lo:hi + 1] = mid_rot[lo:hi + 1]
         spine_rot = np.where(np.isfinite(spine_rot), spine_rot, mid_rot)  # beyond the first and last read ones
     for x, r in zip(sections, spine_rot):
         x["spine_lateral_deviation_mm"] = float(x["lateral_deviation_mm"] + ic.spine_depth_mm * np.sin(np.radians(r)))

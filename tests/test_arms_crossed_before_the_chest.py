@@ -8,7 +8,7 @@ import pytest
 
 from analysis.backsurface import depth_map
 from analysis.config import IndicesConfig
-from analysis.indices import analyse_torso, fill_between, unread_apex_levels
+from analysis.indices import analyse_torso, fill_between, unread_apex_levels, unread_runs
 from analysis.synthetic import scan_surface
 from recon_engine.simulator.config import SubjectConfig, preset
 from recon_engine.simulator.posed import posed_subject, posture_like
@@ -92,21 +92,30 @@ def test_a_scan_with_the_arms_across_the_chest_withholds_the_surface_rotation(cr
         assert "surface_rotation_deg" in rep["not_measurable"]["indices"]
         assert "arms held across the chest" in rep["not_measurable"]["reason"]
         assert all(r["surface_rotation_deg"]["max"] is None for r in rep["regions"].values())
-        # the spine midline turns the unread sections by the rotation interpolated from the read ones around
-        # them, not by the skin's at the midline (which reads the curve's apex larger)
+        # the spine midline turns a short run of unread sections by the rotation interpolated from the read
+        # sections at its ends, and the long run across the apex by the midline skin's (a straight line would cut
+        # the curve's peak off)
         secs = rep["sections"]
         rot = np.array([x["surface_rotation_unsmoothed_deg"] for x in secs])
-        unread = ~np.isfinite(rot)
-        assert unread.sum() >= 3
+        levels = np.array([x["level"] for x in secs])
         turn = fill_between([x["z_mm"] for x in secs], rot)
+        mid = np.array([x["midline_rotation_unsmoothed_deg"] for x in secs])
+        runs = [(lo, hi) for lo, hi in unread_runs(rot) if 0 < lo and hi < len(rot) - 1]
+        long = [(lo, hi) for lo, hi in runs if levels[hi] - levels[lo] >= IndicesConfig().unread_apex_min_span]
+        assert long, "the forearms hide the apex's sections"
+        expected = turn.copy()
+        for lo, hi in long:
+            expected[lo:hi + 1] = mid[lo:hi + 1]
+        inner = np.zeros(len(rot), bool)
+        for lo, hi in runs:
+            inner[lo:hi + 1] = True
         spine = np.array([x["spine_lateral_deviation_mm"] for x in secs])
         lateral = np.array([x["lateral_deviation_mm"] for x in secs])
-        inner = unread & np.isfinite(turn)
-        assert inner.any()
         depth = IndicesConfig().spine_depth_mm
-        assert np.allclose(spine[inner], lateral[inner] + depth * np.sin(np.radians(turn[inner])), atol=1e-6)
-        mid = np.array([x["midline_rotation_unsmoothed_deg"] for x in secs])
-        assert np.max(np.abs(mid[inner] - turn[inner])) > 1.0  # the fall-back of before would have moved them
+        assert np.allclose(spine[inner], lateral[inner] + depth * np.sin(np.radians(expected[inner])), atol=1e-6)
+        # and the long run's rotation is not the straight line's, which reads the apex lower
+        lo, hi = long[0]
+        assert np.max(mid[lo:hi + 1] - turn[lo:hi + 1]) > 2.0
     else:
         assert rep["surface_rotation_deg"]["right"]["size"] > 18.0
         assert "surface_rotation_deg" not in (rep.get("not_measurable") or {}).get("indices", [])
