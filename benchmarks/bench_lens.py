@@ -33,6 +33,10 @@ arm's cameras with the result (:func:`synthetic_paper`)::
 
     .venv/bin/python benchmarks/bench_lens.py --synthetic-paper --seeds 21 22 23 --noise-px 0.0675 0 --free-k3
 
+With it, ``--poses 4 10`` calibrates from that many test-field poses (the first ones are the same whatever the
+number), and ``--no-decentring`` uses lenses without decentring with p1 and p2 held at 0: how far the principal
+point is determined when decentring need not be estimated beside it.
+
 Seeds: the defaults 21, 22, 23 are reporting seeds; no default of the
 engine or of the lens was chosen on them (the tests use seeds 0, 3, 11; the
 paper-scale defaults were tuned on seed 0). Writes ``OUT/bench_lens.json``.
