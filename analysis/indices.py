@@ -547,17 +547,14 @@ def unread_apex_levels(sections: list, min_deg: float = 2.0, min_span: float = 0
     rot = np.array([s["surface_rotation_deg"] for s in sections], float)
     mid = np.array([s["midline_rotation_deg"] for s in sections], float)
     levels = np.array([s["level"] for s in sections], float)
+    runs = unread_runs(rot)
     out = []
     for sign in (1.0, -1.0):
         v = np.where(np.isfinite(mid), sign * mid, -np.inf)
         k = int(np.argmax(v))
         if v[k] < min_deg or np.isfinite(rot[k]):
             continue
-        lo, hi = k, k
-        while lo > 0 and not np.isfinite(rot[lo - 1]):
-            lo -= 1
-        while hi < len(rot) - 1 and not np.isfinite(rot[hi + 1]):
-            hi += 1
+        lo, hi = next((lo, hi) for lo, hi in runs if lo <= k <= hi)
         if levels[hi] - levels[lo] >= min_span - 1e-6 and (levels[lo], levels[hi]) not in out:
             out.append((float(levels[lo]), float(levels[hi])))
     return out
