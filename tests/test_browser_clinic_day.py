@@ -111,7 +111,10 @@ def test_a_clinician_goes_through_the_clinic_day_at_both_widths(live_server, pat
             page.wait_for_url(f"{base}/")
             step("02-worklist")
             # today's patient, from the worklist
-            page.locator("#worklist-today").get_by_role("link", name=p.name).click()
+            # the click returns once the URL has changed, before the new document is read (CI once found the
+            # visit's URL with an empty page): wait for the navigation to load
+            with page.expect_navigation():
+                page.locator("#worklist-today").get_by_role("link", name=p.name).click()
             assert page.url.endswith(f"/visits/{today.pk}/") and p.identifier in page.content()
             step("03-todays-visit")
             page.goto(f"{base}/patients/{p.pk}/")
