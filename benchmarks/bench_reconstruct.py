@@ -142,7 +142,8 @@ def run_capture(args, capture: str) -> dict:
     out = {
         "capture": capture, "reference": rig.reference_arm.id,
         "ours_settings": {"fill_spacing_mm": args.torso_cfg.arm.tracking.fill_spacing_mm,
-                          "max_sigma_factor": args.torso_cfg.arm.max_sigma_factor},
+                          "max_sigma_factor": args.torso_cfg.arm.max_sigma_factor,
+                          "local_quadric_neighbours": args.torso_cfg.arm.local_quadric_neighbours},
         "points": int(len(P)), "rms_mm": float(np.sqrt(np.mean(d ** 2))), "p95_mm": float(np.percentile(d, 95)),
         "max_mm": float(d.max()), "coverage": coverage, "seen_area_cm2": float(truth.area[seen2].sum() / 100),
         "table1": reg["pairs"], "pairwise": reg["pairwise"], "sigmas": reg["sigmas"],
@@ -214,9 +215,13 @@ def main() -> int:
                     help="our TrackingConfig.fill_spacing_mm (a cheaper rig: 2.0; default: the engine's)")
     ap.add_argument("--max-sigma-factor", type=float, default=None,
                     help="our ReconstructionConfig.max_sigma_factor (with the fill: 4.0; default: the engine's)")
+    ap.add_argument("--no-refinement", action="store_true",
+                    help="the arms' points as intersected (ReconstructionConfig.local_quadric_neighbours 0)")
     ap.add_argument("--json", default="bench-out/bench_reconstruct.json")
     args = ap.parse_args()
     arm = TorsoConfig().arm
+    if args.no_refinement:
+        arm = replace(arm, local_quadric_neighbours=0)
     if args.fill_spacing_mm is not None:
         arm = replace(arm, tracking=replace(arm.tracking, fill_spacing_mm=args.fill_spacing_mm))
     if args.max_sigma_factor is not None:

@@ -57,7 +57,8 @@ class ReconstructionConfig:
     # surface.window_curvature_bias: the window matches the skin's mean height over what it covers). Cheaper rig
     # (1000 x 667 px), seed 41 (tuning), arms A-D with the fill, our calibration, RMS to the true skin: 0.133-0.167
     # mm as intersected; 24 neighbours: 0.126-0.157 onto the quadric, 0.116-0.141 corrected, 0.106-0.128 both; 40
-    # neighbours both 0.098-0.124; 60: 0.096-0.123; 100: 0.108-0.137 (the quadric no longer follows the skin)
+    # neighbours both 0.098-0.124; 60: 0.095-0.122; 100 (before onto_scale_mm): 0.108-0.137 (the quadric no longer
+    # follows the skin)
     local_quadric_neighbours: int = 40  # 0: no refinement
     onto_local_quadric: bool = True
     # mm, at most this Gaussian scale of the neighbours of the quadric the points move onto (the curvature's fit
