@@ -236,6 +236,10 @@ def refine_on_local_quadrics(surface: PointSurface, cams: list, cfg: Reconstruct
     cheaper rig: RMS as with the first alone, arm C's largest distance 2.72 mm instead of 3.26.) The
     patches, normals and per-point data stay. Returns ``(surface, shift)``, ``shift`` (N,) in mm along the
     normals; ``surface`` is not modified.
+
+    The window is the in-focus least-squares window (``lsm_window``) for every point: the points that growing
+    (``grow_window``, 11 px) or an out-of-focus pair (``blurred_lsm_window``, 15 px) matched carry a larger bias and
+    are under-corrected (the points do not say which window matched them).
     """
     n = len(surface.points)
     if cfg.local_quadric_neighbours <= 0 or n < 6 or not (cfg.onto_local_quadric or cfg.window_curvature_correction):
