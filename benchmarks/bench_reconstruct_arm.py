@@ -50,7 +50,7 @@ from recon_engine.formats import load_image, read_calibration, read_capture, rea
 from recon_engine.multiview import IntersectionConfig, intersect  # noqa: E402
 from recon_engine.parallel import reuse_freed_images  # noqa: E402
 from recon_engine.reconstruction import (ReconstructionConfig, arm_cameras, reconstruct_arm,  # noqa: E402
-                                         surface_from_intersection)
+                                         refine_on_local_quadrics, surface_from_intersection)
 
 from provenance import provenance  # noqa: E402
 
@@ -116,12 +116,14 @@ class Truth:
                 "density_per_cm2": float(np.isfinite(on_torso).sum() / max(area_cm2, 1e-9))}
 
 
-def sgbm_arm(images, cams, centre, radius_mm=400.0, step=2, block=5, filters: ReconstructionConfig | None = None
-             ) -> tuple[np.ndarray, np.ndarray, float]:
+def sgbm_arm(images, cams, centre, radius_mm=400.0, step=2, block=5, filters: ReconstructionConfig | None = None,
+             refine: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
     """StereoSGBM on each neighbouring rectified pair, triangulated; ``(points, filtered, seconds)``.
 
     ``filtered``: the same points after our own surface filters (``surface_from_intersection`` with our
-    intersection's ray test: imprecise points, points off the local surface, islands), pair by pair.
+    intersection's ray test: imprecise points, points off the local surface, islands), pair by pair; with
+    ``refine``, also our refinement on local quadrics (``refine_on_local_quadrics``, its window bias for SGBM's
+    own block of ``block`` px).
     """
     filters = filters or ReconstructionConfig()
     t0 = time.perf_counter()
@@ -152,6 +154,10 @@ def sgbm_arm(images, cams, centre, radius_mm=400.0, step=2, block=5, filters: Re
         res = intersect(two, obs, IntersectionConfig(chi2_ray=1e12, min_angle_deg=0))
         pts.append(res["X"][res["valid"]])
         surface, _, _ = surface_from_intersection(intersect(two, obs, filters.intersection), two, filters)
+        if refine:
+            block_cfg = replace(filters, tracking=replace(filters.tracking, matching=replace(
+                filters.tracking.matching, lsm_window=block)))
+            surface, _ = refine_on_local_quadrics(surface, two, block_cfg)
         kept.append(surface.points)
     return np.concatenate(pts), np.concatenate(kept), time.perf_counter() - t0
 
@@ -193,6 +199,11 @@ def measure_arm(cap, rig, cal, arm: str, truth: Truth, seen_by: list, placed=lam
         row["sgbm"] = {**truth.figures(placed(filtered), seen_by), "seconds": t_sg,
                        "filters": "ours (precision, off the local surface, islands)"}
         row["sgbm_unfiltered"] = truth.figures(placed(raw), seen_by)
+        # the peer with our refinement on local quadrics too (its own block's window bias): the stage is ours,
+        # but a competent user of SGBM could smooth its points so
+        _, refined, t_rf = sgbm_arm(images, cams, centre, refine=True)
+        row["sgbm_refined"] = {**truth.figures(placed(refined), seen_by), "seconds": t_rf,
+                               "filters": "ours, then our refinement on local quadrics (5 px window)"}
     if "pycolmap" in peers:
         from peer_pycolmap import pycolmap_arm
 
