@@ -116,18 +116,21 @@ class Truth:
                 "density_per_cm2": float(np.isfinite(on_torso).sum() / max(area_cm2, 1e-9))}
 
 
-def sgbm_arm(images, cams, centre, radius_mm=400.0, step=2, block=5, filters: ReconstructionConfig | None = None,
-             refine: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
-    """StereoSGBM on each neighbouring rectified pair, triangulated; ``(points, filtered, seconds)``.
+def sgbm_arm(images, cams, centre, radius_mm=400.0, step=2, block=5, filters: ReconstructionConfig | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """StereoSGBM on each neighbouring rectified pair, triangulated; ``(points, filtered, refined, seconds)``.
 
     ``filtered``: the same points after our own surface filters (``surface_from_intersection`` with our
-    intersection's ray test: imprecise points, points off the local surface, islands), pair by pair; with
-    ``refine``, also our refinement on local quadrics (``refine_on_local_quadrics``, its window bias for SGBM's
-    own block of ``block`` px).
+    intersection's ray test: imprecise points, points off the local surface, islands), pair by pair;
+    ``refined``: those after our refinement on local quadrics too (``refine_on_local_quadrics``, its window bias
+    for SGBM's own block of ``block`` px). ``seconds`` is SGBM with the filters, the refinement left out.
     """
     filters = filters or ReconstructionConfig()
+    block_cfg = replace(filters, tracking=replace(filters.tracking, matching=replace(
+        filters.tracking.matching, lsm_window=block)))
     t0 = time.perf_counter()
-    pts, kept = [], []
+    refine_s = 0.0
+    pts, kept, refined = [], [], []
     for k in range(len(images) - 1):
         pair = rectify_pair(cams[k], cams[k + 1])
         L = pair.resample("left", images[k])
@@ -154,12 +157,12 @@ def sgbm_arm(images, cams, centre, radius_mm=400.0, step=2, block=5, filters: Re
         res = intersect(two, obs, IntersectionConfig(chi2_ray=1e12, min_angle_deg=0))
         pts.append(res["X"][res["valid"]])
         surface, _, _ = surface_from_intersection(intersect(two, obs, filters.intersection), two, filters)
-        if refine:
-            block_cfg = replace(filters, tracking=replace(filters.tracking, matching=replace(
-                filters.tracking.matching, lsm_window=block)))
-            surface, _ = refine_on_local_quadrics(surface, two, block_cfg)
         kept.append(surface.points)
-    return np.concatenate(pts), np.concatenate(kept), time.perf_counter() - t0
+        t1 = time.perf_counter()
+        refined.append(refine_on_local_quadrics(surface, two, block_cfg)[0].points)
+        refine_s += time.perf_counter() - t1
+    return (np.concatenate(pts), np.concatenate(kept), np.concatenate(refined),
+            time.perf_counter() - t0 - refine_s)
 
 
 def arm_displacement(scenario: Path, capture: str, arm: str):
@@ -195,14 +198,13 @@ def measure_arm(cap, rig, cal, arm: str, truth: Truth, seen_by: list, placed=lam
                        "rays_per_point": report["rays_per_point"]}
     images = [load_image(cap, c, rig) for c in ids]
     if "sgbm" in peers:
-        raw, filtered, t_sg = sgbm_arm(images, cams, centre)
+        raw, filtered, refined, t_sg = sgbm_arm(images, cams, centre)
         row["sgbm"] = {**truth.figures(placed(filtered), seen_by), "seconds": t_sg,
                        "filters": "ours (precision, off the local surface, islands)"}
         row["sgbm_unfiltered"] = truth.figures(placed(raw), seen_by)
         # the peer with our refinement on local quadrics too (its own block's window bias): the stage is ours,
         # but a competent user of SGBM could smooth its points so
-        _, refined, t_rf = sgbm_arm(images, cams, centre, refine=True)
-        row["sgbm_refined"] = {**truth.figures(placed(refined), seen_by), "seconds": t_rf,
+        row["sgbm_refined"] = {**truth.figures(placed(refined), seen_by),
                                "filters": "ours, then our refinement on local quadrics (5 px window)"}
     if "pycolmap" in peers:
         from peer_pycolmap import pycolmap_arm

@@ -26,7 +26,7 @@ from .multiview import IntersectionConfig, intersect
 from .parallel import cores
 from .registration import (ICPatchConfig, Transform, chain_initial, multi_surface_registration, pair_fit,
                            patch_indices, weak_arms)
-from .surface import (PointSurface, flank_faces, in_patches, local_quadrics, make_surface, neighbour_scale,
+from .surface import (PointSurface, flank_faces, in_patches, local_quadrics, make_surface, nearest_points,
                       off_surface, off_surface_again, small_components, subset, window_curvature_bias)
 from .matching import reason_counts
 from .tracking import TrackingConfig, track_images
@@ -56,9 +56,8 @@ class ReconstructionConfig:
     # onto it (onto_local_quadric), and out of the matching window's curvature bias (window_curvature_correction,
     # surface.window_curvature_bias: the window matches the skin's mean height over what it covers). Cheaper rig
     # (1000 x 667 px), seed 41 (tuning), arms A-D with the fill, our calibration, RMS to the true skin: 0.133-0.167
-    # mm as intersected; 24 neighbours: 0.126-0.157 onto the quadric, 0.116-0.141 corrected, 0.106-0.128 both; 40
-    # neighbours both 0.098-0.124; 60: 0.095-0.122; 100 (before onto_scale_mm): 0.108-0.137 (the quadric no longer
-    # follows the skin)
+    # mm as intersected; 40 neighbours: 0.124-0.155 onto the quadric, 0.111-0.137 corrected, 0.098-0.122 both; both
+    # with 24 neighbours 0.106-0.128, 60: 0.095-0.120, 100: 0.097-0.123 (40: nearly 60's, from fewer neighbours)
     local_quadric_neighbours: int = 40  # 0: no refinement
     onto_local_quadric: bool = True
     # mm, at most this Gaussian scale of the neighbours of the quadric the points move onto (the curvature's fit
@@ -247,11 +246,13 @@ def refine_on_local_quadrics(surface: PointSurface, cams: list, cfg: Reconstruct
     sigma = np.asarray(surface.data["sigma_mm"], dtype=float)
     w = 1.0 / np.maximum(sigma, 1e-3) ** 2
     k = cfg.local_quadric_neighbours
-    h = neighbour_scale(surface.points, k)
-    q = local_quadrics(surface.points, surface.normals, w, k, h)
+    near = nearest_points(surface.points, k)  # one search serves both fits
+    h = float(np.median(near[0][:, -1]))
+    q = local_quadrics(surface.points, surface.normals, w, k, h, neighbours=near)
     shift = np.zeros(n)
     if cfg.onto_local_quadric:
-        onto = q if h <= cfg.onto_scale_mm else local_quadrics(surface.points, surface.normals, w, k, cfg.onto_scale_mm)
+        onto = q if h <= cfg.onto_scale_mm else local_quadrics(surface.points, surface.normals, w, k,
+                                                               cfg.onto_scale_mm, neighbours=near)
         shift += onto[:, 0]
     if cfg.window_curvature_correction:
         m = cfg.tracking.matching

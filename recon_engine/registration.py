@@ -102,6 +102,10 @@ class ICPatchConfig:
     threads: int = 0  # the pairs' closest-patch queries run on this many threads; 0: one per core
 
 
+class TooFewPairs(ValueError):
+    """ICPatch found too few point-patch pairs within its acceptance distance to adjust a transformation."""
+
+
 @dataclass
 class Transform:
     """A 3D similarity: ``x' = scale · R @ x + t`` (mm)."""
@@ -329,7 +333,7 @@ def icpatch(moving: PointSurface, fixed: PointSurface, initial: Transform | None
         idx, n, p0, _ = pairs_now
         d = np.sum((T.apply(X[idx]) - p0) * n, axis=1)
         if len(idx) < 7:
-            raise ValueError(f"ICPatch: only {len(idx)} point-patch pairs within {dist:.1f} mm: "
+            raise TooFewPairs(f"ICPatch: only {len(idx)} point-patch pairs within {dist:.1f} mm: "
                              "the surfaces do not overlap under the initial transformation")
         # increments about the moving surface's centre: x' = (1+ds)(I+[w]x)(Y) + t + dt, Y = T(x) - T(c)
         Y = T.apply(X[idx]) - T.apply(centre)
@@ -449,7 +453,7 @@ def chain_initial(surfaces: dict, order: list, reference: str, cfg: ICPatchConfi
             moving = subset(moving, keep)
         try:
             res = icpatch(moving, surfaces[prev], local, pair_cfg, index=index)
-        except ValueError:
+        except TooFewPairs:
             # the sampled count promised an overlap that the surface does not hold at this start distance (paper
             # scale, seed 31: arms swung by 31-38 mm, 2 pairs within 25 mm, the torso failed): this pair does not
             # place the arm at this distance; another pair, or a wider start, may

@@ -193,32 +193,27 @@ def tangent_bases(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return u, np.cross(n, u)
 
 
-def neighbour_scale(points: np.ndarray, k: int, sample: int = 5000) -> float:
-    """The median distance (mm) of the points' ``k``-th nearest point (themselves counted first), over every
-    point or, for more than ``sample`` points, over an evenly spaced ``sample`` of them."""
+def nearest_points(points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's ``k`` nearest points, itself first: ``(distances (N, k) mm, indices (N, k))``."""
     from scipy.spatial import cKDTree
 
     P = np.asarray(points, dtype=float)
-    if len(P) < 2:
-        return 0.0
-    at = P[::max(1, len(P) // sample)]
-    return float(np.median(cKDTree(P).query(at, k=min(k, len(P)))[0][:, -1]))
+    return cKDTree(P).query(P, k=min(k, len(P)))
 
 
 def local_quadrics(points: np.ndarray, normals: np.ndarray, weights: np.ndarray | None = None, k: int = 40,
-                   scale_mm: float | None = None, chunk: int = 20_000) -> np.ndarray:
+                   scale_mm: float | None = None, chunk: int = 20_000, neighbours: tuple | None = None) -> np.ndarray:
     """The height ``z = c0 + c1 x + c2 y + c3 x² + c4 xy + c5 y²`` (mm) of the skin around every point, fitted by
     weighted least squares to its ``k`` nearest points (itself included) in its tangent frame: ``x, y`` along
     :func:`tangent_bases`' ``u, v``, ``z`` along the point's normal, the point at the origin.
 
     Each neighbour weighs ``weights`` (e.g. 1 / sigma², default 1) times a Gaussian of its distance of scale
-    ``scale_mm`` (default: :func:`neighbour_scale`); one Tukey reweighting then leaves out a neighbour
+    ``scale_mm`` (default: the median distance of the k-th neighbour); one Tukey reweighting then leaves out a neighbour
     far off the others' quadric (a wrong match nearby). ``c0`` is how far the fitted skin lies from the point
     along its normal; ``c3 + c5`` is the mean curvature (1/mm; negative where the skin bulges towards the
-    normal). Returns (N, 6); zeros where fewer than 6 points exist. Inputs are not modified.
+    normal). ``neighbours``: :func:`nearest_points`' result for these points and ``k``, when the caller has it.
+    Returns (N, 6); zeros where fewer than 6 points exist. Inputs are not modified.
     """
-    from scipy.spatial import cKDTree
-
     P = np.asarray(points, dtype=float)
     N = len(P)
     out = np.zeros((N, 6))
@@ -228,7 +223,7 @@ def local_quadrics(points: np.ndarray, normals: np.ndarray, weights: np.ndarray 
     w_point = np.ones(N) if weights is None else np.asarray(weights, dtype=float)
     u, v = tangent_bases(normals)
     n = np.asarray(normals, dtype=float)
-    dist, nb = cKDTree(P).query(P, k=k)
+    dist, nb = nearest_points(P, k) if neighbours is None else neighbours
     h = max(float(np.median(dist[:, -1])) if scale_mm is None else float(scale_mm), 1e-9)
     for lo in range(0, N, chunk):
         sl = slice(lo, min(lo + chunk, N))

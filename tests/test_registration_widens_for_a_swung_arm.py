@@ -44,7 +44,7 @@ def test_a_pair_too_sparse_at_the_start_distance_is_tried_again_wider(monkeypatc
     def sparse_at_the_start(moving, fixed, initial=None, cfg=None, index=None):
         starts.append(cfg.initial_distance_mm)
         if cfg.initial_distance_mm <= ICPatchConfig().initial_distance_mm:
-            raise ValueError("ICPatch: only 2 point-patch pairs within 25.0 mm")
+            raise registration.TooFewPairs("ICPatch: only 2 point-patch pairs within 25.0 mm")
         return real(moving, fixed, initial, cfg, index)
 
     monkeypatch.setattr(registration, "icpatch", sparse_at_the_start)
