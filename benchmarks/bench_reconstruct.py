@@ -116,6 +116,11 @@ def open3d_multiway(surfaces, order):
     return {a: _from_matrix(graph.nodes[k].pose) for k, a in enumerate(order)}
 
 
+def kept_surfaces_path(scenario: str, capture: str) -> str:
+    """Where ``--keep-surfaces`` pickles a capture's arm surfaces: one file per scenario and capture."""
+    return f"bench-out/surfaces-{Path(scenario).name}-{capture}.pkl"
+
+
 def run_capture(args, capture: str) -> dict:
     """Reconstruct one capture end to end and register its surfaces with every method: its figures."""
     S = Path(args.scenario)
@@ -143,7 +148,8 @@ def run_capture(args, capture: str) -> dict:
         "capture": capture, "reference": rig.reference_arm.id,
         "ours_settings": {"fill_spacing_mm": args.torso_cfg.arm.tracking.fill_spacing_mm,
                           "max_sigma_factor": args.torso_cfg.arm.max_sigma_factor,
-                          "local_quadric_neighbours": args.torso_cfg.arm.local_quadric_neighbours},
+                          "local_quadric_neighbours": args.torso_cfg.arm.local_quadric_neighbours,
+                          "obliquity_bias_px": args.torso_cfg.arm.obliquity_bias_px},
         "points": int(len(P)), "rms_mm": float(np.sqrt(np.mean(d ** 2))), "p95_mm": float(np.percentile(d, 95)),
         "max_mm": float(d.max()), "coverage": coverage, "seen_area_cm2": float(truth.area[seen2].sum() / 100),
         "table1": reg["pairs"], "pairwise": reg["pairwise"], "sigmas": reg["sigmas"],
@@ -194,7 +200,7 @@ def run_capture(args, capture: str) -> dict:
                       for a, b in zip(order, order[1:] + order[:1])]}
     if args.keep_surfaces:
         Path("bench-out").mkdir(exist_ok=True)
-        with open(f"bench-out/surfaces-{capture}.pkl", "wb") as f:
+        with open(kept_surfaces_path(args.scenario, capture), "wb") as f:
             pickle.dump({"surfaces": surfaces, "reports": rep["arms"], "failed": rep["failed_arms"]}, f)
     print(capture, json.dumps({k: v for k, v in out.items() if k not in ("pairwise", "sigmas", "strength")},
                               indent=1, default=float), flush=True)
@@ -210,16 +216,20 @@ def main() -> int:
                     help="also register the same surfaces with these ICPatchConfig.max_patch_edge values "
                          "(\"none\": all patches); the default's is not repeated")
     ap.add_argument("--keep-surfaces", action="store_true",
-                    help="pickle each capture's arm surfaces and reports to bench-out/surfaces-<capture>.pkl")
+                    help="pickle each capture's arm surfaces and reports to bench-out/surfaces-<scenario>-<capture>.pkl")
     ap.add_argument("--fill-spacing-mm", type=float, default=None,
                     help="our TrackingConfig.fill_spacing_mm (a cheaper rig: 2.0; default: the engine's)")
     ap.add_argument("--max-sigma-factor", type=float, default=None,
                     help="our ReconstructionConfig.max_sigma_factor (with the fill: 4.0; default: the engine's)")
     ap.add_argument("--no-refinement", action="store_true",
                     help="the arms' points as intersected (ReconstructionConfig.local_quadric_neighbours 0)")
+    ap.add_argument("--obliquity-bias-px", type=float, default=None,
+                    help="our ReconstructionConfig.obliquity_bias_px (0: the obliquity bias left in; default: the engine's)")
     ap.add_argument("--json", default="bench-out/bench_reconstruct.json")
     args = ap.parse_args()
     arm = TorsoConfig().arm
+    if args.obliquity_bias_px is not None:
+        arm = replace(arm, obliquity_bias_px=args.obliquity_bias_px)
     if args.no_refinement:
         arm = replace(arm, local_quadric_neighbours=0)
     if args.fill_spacing_mm is not None:

@@ -1,7 +1,7 @@
 """Benchmark: registration alone, on arm surfaces kept by ``bench_reconstruct.py --keep-surfaces``.
 
     .venv/bin/python benchmarks/bench_reconstruct.py --capture visit0-a visit0-b visit1-a --keep-surfaces
-    .venv/bin/python benchmarks/bench_registration.py --capture visit0-a visit0-b visit1-a
+    .venv/bin/python benchmarks/bench_registration.py --capture visit0-a visit0-b visit1-a  # reads bench-out/surfaces-<scenario>-<capture>.pkl
 
 The same four surfaces of each capture are registered by our ICPatch (the
 default configuration and the variants below) and by Open3D's pair-wise ICP
@@ -32,7 +32,7 @@ from recon_engine.formats import read_calibration, read_rig  # noqa: E402
 from recon_engine.reconstruction import TorsoConfig, register_arms  # noqa: E402
 from recon_engine.registration import Transform, choose_patches, icpatch, patch_indices  # noqa: E402
 
-from bench_reconstruct import point_cloud, displacement_errors, open3d_multiway, open3d_pairwise  # noqa: E402
+from bench_reconstruct import kept_surfaces_path, point_cloud, displacement_errors, open3d_multiway, open3d_pairwise  # noqa: E402
 from bench_reconstruct_arm import Truth  # noqa: E402
 from provenance import provenance  # noqa: E402
 
@@ -112,7 +112,7 @@ def main() -> int:
     base = TorsoConfig().icpatch
     rows = {}
     for capture in args.capture:
-        with open(f"bench-out/surfaces-{capture}.pkl", "rb") as f:
+        with open(kept_surfaces_path(args.scenario, capture), "rb") as f:
             kept = pickle.load(f)
         surfaces, reports, failed = kept["surfaces"], kept["reports"], kept["failed"]
         truth = Truth(S, capture)

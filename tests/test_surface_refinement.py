@@ -1,5 +1,6 @@
 """The arm surface refined on local quadrics: onto the skin's local shape, and out of the matching window's
-curvature bias (recon_engine.surface.local_quadrics, window_curvature_bias; reconstruction.refine_on_local_quadrics)."""
+curvature and obliquity biases (recon_engine.surface.local_quadrics, window_curvature_bias, window_obliquity_bias;
+reconstruction.refine_on_local_quadrics)."""
 
 from dataclasses import dataclass, replace
 
@@ -7,7 +8,7 @@ import numpy as np
 import pytest
 
 from recon_engine.reconstruction import ReconstructionConfig, refine_on_local_quadrics
-from recon_engine.surface import PointSurface, local_quadrics, window_curvature_bias
+from recon_engine.surface import PointSurface, local_quadrics, window_curvature_bias, window_obliquity_bias
 
 R_MM = 120.0  # a trunk's radius
 
@@ -100,3 +101,39 @@ def test_it_can_be_turned_off():
     s = _surface(P + 0.3 * N, N, 0.1)
     refined, shift = refine_on_local_quadrics(s, CAMERAS, replace(ReconstructionConfig(), local_quadric_neighbours=0))
     assert refined is s and not shift.any()
+
+
+def test_the_obliquity_bias_is_nothing_facing_the_cameras_and_grows_with_the_obliquity():
+    eye = np.mean([c.C for c in CAMERAS], axis=0)
+    theta = np.radians([0.0, 30.0, 60.0, 75.0, 85.0])
+    P = np.zeros((len(theta), 3))
+    to = eye / np.linalg.norm(eye)  # from the origin to the cameras: +z
+    N = np.column_stack([np.sin(theta), np.zeros_like(theta), np.cos(theta)])  # tilted away from +z by theta
+    assert to @ N[0] == pytest.approx(1.0)
+    b = window_obliquity_bias(P, N, CAMERAS, 0.02)
+    g = 2500.0 / 2500.0  # mm of skin per pixel: distance 2500 mm, principal distance 2500 px
+    np.testing.assert_allclose(b[:4], -0.02 * g * (1 / np.cos(theta[:4]) - 1), atol=1e-12)
+    assert b[0] == 0.0 and b[2] == pytest.approx(-0.02)  # inside the skin by 0.02 px of skin at 60 degrees
+    assert b[4] == pytest.approx(b[3])  # capped at 75 degrees: a grazing normal is itself uncertain
+
+
+def test_it_moves_obliquely_seen_points_out_of_their_bias_and_leaves_the_frontal_ones():
+    # a trunk-like cylinder of radius R_MM about the y axis, seen from +z: the flanks turn away from the cameras
+    rng = np.random.default_rng(2)
+    phi = rng.uniform(-np.radians(70), np.radians(70), 8000)
+    y = rng.uniform(-80, 80, 8000)
+    P = np.column_stack([R_MM * np.sin(phi), y, R_MM * np.cos(phi)])
+    N = np.column_stack([np.sin(phi), np.zeros_like(phi), np.cos(phi)])
+    cfg = replace(ReconstructionConfig(), window_curvature_correction=False, obliquity_bias_px=0.05)
+    bias = window_obliquity_bias(P, N, CAMERAS, cfg.obliquity_bias_px)
+    measured = P + bias[:, None] * N
+    refined, _ = refine_on_local_quadrics(_surface(measured, N, 0.1), CAMERAS, cfg)
+    radial = lambda X: np.hypot(X[:, 0], X[:, 2]) - R_MM  # noqa: E731
+    flank = np.abs(np.degrees(phi)) > 55
+    inner = np.abs(y) < 60  # away from the patch's ends, where the quadric's neighbours are one-sided
+    assert np.mean(radial(measured)[flank & inner]) < -0.025
+    assert abs(np.mean(radial(refined.points)[flank & inner])) < 0.005  # out of its bias
+    front = np.abs(np.degrees(phi)) < 15
+    assert abs(np.mean(radial(refined.points)[front & inner])) < 0.002  # the frontal skin stays
+    off, _ = refine_on_local_quadrics(_surface(measured, N, 0.1), CAMERAS, replace(cfg, obliquity_bias_px=0.0))
+    assert np.mean(radial(off.points)[flank & inner]) < -0.025  # the setting turns it off
