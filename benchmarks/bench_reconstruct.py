@@ -149,7 +149,7 @@ def run_capture(args, capture: str) -> dict:
         "ours_settings": {"fill_spacing_mm": args.torso_cfg.arm.tracking.fill_spacing_mm,
                           "max_sigma_factor": args.torso_cfg.arm.max_sigma_factor,
                           "local_quadric_neighbours": args.torso_cfg.arm.local_quadric_neighbours,
-                          "obliquity_bias_px": args.torso_cfg.arm.obliquity_bias_px},
+                          "obliquity_bias": args.torso_cfg.arm.obliquity_bias},
         "points": int(len(P)), "rms_mm": float(np.sqrt(np.mean(d ** 2))), "p95_mm": float(np.percentile(d, 95)),
         "max_mm": float(d.max()), "coverage": coverage, "seen_area_cm2": float(truth.area[seen2].sum() / 100),
         "table1": reg["pairs"], "pairwise": reg["pairwise"], "sigmas": reg["sigmas"],
@@ -223,13 +223,13 @@ def main() -> int:
                     help="our ReconstructionConfig.max_sigma_factor (with the fill: 4.0; default: the engine's)")
     ap.add_argument("--no-refinement", action="store_true",
                     help="the arms' points as intersected (ReconstructionConfig.local_quadric_neighbours 0)")
-    ap.add_argument("--obliquity-bias-px", type=float, default=None,
-                    help="our ReconstructionConfig.obliquity_bias_px (0: the obliquity bias left in; default: the engine's)")
+    ap.add_argument("--obliquity-bias", type=float, default=None,
+                    help="our ReconstructionConfig.obliquity_bias (1/mm; 0: the obliquity bias left in; default: the engine's)")
     ap.add_argument("--json", default="bench-out/bench_reconstruct.json")
     args = ap.parse_args()
     arm = TorsoConfig().arm
-    if args.obliquity_bias_px is not None:
-        arm = replace(arm, obliquity_bias_px=args.obliquity_bias_px)
+    if args.obliquity_bias is not None:
+        arm = replace(arm, obliquity_bias=args.obliquity_bias)
     if args.no_refinement:
         arm = replace(arm, local_quadric_neighbours=0)
     if args.fill_spacing_mm is not None:

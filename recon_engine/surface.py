@@ -271,16 +271,17 @@ def window_curvature_bias(quadrics: np.ndarray, points: np.ndarray, cameras, win
     return (quadrics[:, 3] + quadrics[:, 5]) * (window_px ** 2 / 12.0) * g ** 2
 
 
-def window_obliquity_bias(points: np.ndarray, normals: np.ndarray, cameras, bias_px: float,
+def window_obliquity_bias(points: np.ndarray, normals: np.ndarray, cameras, coefficient: float,
                           cap_deg: float = 75.0) -> np.ndarray:
     """How far (mm, along each point's normal; negative: inside the skin) matching places a point that the
     cameras see obliquely, beyond its curvature's bias (:func:`window_curvature_bias`).
 
-    ``bias_px · g · (1 / cos(theta) - 1)``: ``theta`` the angle between the point's normal and its direction to
-    the cameras' mean centre (capped at ``cap_deg``), ``g`` its mm of skin per pixel (distance over the mean
-    principal distance). A fraction of a pixel that grows as the window's footprint on the skin stretches by
-    ``1 / cos(theta)`` along the skin's tilt; frontal skin carries none of it. ``bias_px`` is measured, not
-    derived: see ``ReconstructionConfig.obliquity_bias_px``.
+    ``coefficient · g² · (1 / cos(theta) - 1)``: ``theta`` the angle between the point's normal and its direction
+    to the cameras' mean centre (capped at ``cap_deg``), ``g`` its mm of skin per pixel (distance over the mean
+    principal distance), ``coefficient`` in 1/mm. The window's footprint on the skin stretches by ``1 / cos(theta)``
+    along the skin's tilt, and what it spans of the skin's shape grows with the footprint's area, as the
+    curvature's bias does (``g²``); frontal skin carries none of it. ``coefficient`` is measured, not derived: see
+    ``ReconstructionConfig.obliquity_bias``.
     """
     P = np.asarray(points, dtype=float)
     eye = np.mean([c.C for c in cameras], axis=0)
@@ -289,7 +290,7 @@ def window_obliquity_bias(points: np.ndarray, normals: np.ndarray, cameras, bias
     dist = np.linalg.norm(to, axis=1)
     cos_theta = np.sum(np.asarray(normals, dtype=float) * to, axis=1) / np.maximum(dist, 1e-9)
     excess = 1.0 / np.maximum(cos_theta, np.cos(np.radians(cap_deg))) - 1.0
-    return -bias_px * (dist / f) * excess
+    return -coefficient * (dist / f) ** 2 * excess
 
 
 def small_components(n_points: int, faces: np.ndarray, min_points: int) -> np.ndarray:

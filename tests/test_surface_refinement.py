@@ -112,8 +112,10 @@ def test_the_obliquity_bias_is_nothing_facing_the_cameras_and_grows_with_the_obl
     assert to @ N[0] == pytest.approx(1.0)
     b = window_obliquity_bias(P, N, CAMERAS, 0.02)
     g = 2500.0 / 2500.0  # mm of skin per pixel: distance 2500 mm, principal distance 2500 px
-    np.testing.assert_allclose(b[:4], -0.02 * g * (1 / np.cos(theta[:4]) - 1), atol=1e-12)
-    assert b[0] == 0.0 and b[2] == pytest.approx(-0.02)  # inside the skin by 0.02 px of skin at 60 degrees
+    np.testing.assert_allclose(b[:4], -0.02 * g ** 2 * (1 / np.cos(theta[:4]) - 1), atol=1e-12)
+    assert b[0] == 0.0 and b[2] == pytest.approx(-0.02)  # inside the skin by 0.02 mm at 60 degrees, 1 mm a pixel
+    half = window_obliquity_bias(P, N, [replace(c, fx=5000.0, fy=5000.0) for c in CAMERAS], 0.02)
+    np.testing.assert_allclose(half, b / 4, atol=1e-12)  # half the skin per pixel: a quarter of the bias
     assert b[4] == pytest.approx(b[3])  # capped at 75 degrees: a grazing normal is itself uncertain
 
 
@@ -124,8 +126,8 @@ def test_it_moves_obliquely_seen_points_out_of_their_bias_and_leaves_the_frontal
     y = rng.uniform(-80, 80, 8000)
     P = np.column_stack([R_MM * np.sin(phi), y, R_MM * np.cos(phi)])
     N = np.column_stack([np.sin(phi), np.zeros_like(phi), np.cos(phi)])
-    cfg = replace(ReconstructionConfig(), window_curvature_correction=False, obliquity_bias_px=0.05)
-    bias = window_obliquity_bias(P, N, CAMERAS, cfg.obliquity_bias_px)
+    cfg = replace(ReconstructionConfig(), window_curvature_correction=False, obliquity_bias=0.05)
+    bias = window_obliquity_bias(P, N, CAMERAS, cfg.obliquity_bias)
     measured = P + bias[:, None] * N
     refined, _ = refine_on_local_quadrics(_surface(measured, N, 0.1), CAMERAS, cfg)
     radial = lambda X: np.hypot(X[:, 0], X[:, 2]) - R_MM  # noqa: E731
@@ -135,5 +137,5 @@ def test_it_moves_obliquely_seen_points_out_of_their_bias_and_leaves_the_frontal
     assert abs(np.mean(radial(refined.points)[flank & inner])) < 0.005  # out of its bias
     front = np.abs(np.degrees(phi)) < 15
     assert abs(np.mean(radial(refined.points)[front & inner])) < 0.002  # the frontal skin stays
-    off, _ = refine_on_local_quadrics(_surface(measured, N, 0.1), CAMERAS, replace(cfg, obliquity_bias_px=0.0))
+    off, _ = refine_on_local_quadrics(_surface(measured, N, 0.1), CAMERAS, replace(cfg, obliquity_bias=0.0))
     assert np.mean(radial(off.points)[flank & inner]) < -0.025  # the setting turns it off
