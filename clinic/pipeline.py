@@ -489,7 +489,16 @@ def _register(job: Job, claim) -> str:
         for field, path in zip(("torso", "mesh", "report_file"), paths):
             with open(path, "rb") as fh:
                 getattr(rec, field).save(path.name, File(fh), save=False)
-        rec.save()
+        with transaction.atomic():
+            # still ours? A worker slowed past its lease (a loaded machine) may find the registration handed to a
+            # redelivery meanwhile: that one forgot what was half-made when it took over and stores the torso
+            # itself, so this one stores none (two torsos of one job: the second's insert failed the job)
+            if not Job.objects.select_for_update().filter(pk=job.pk, state=Job.RUNNING, claimed=claim).exists():
+                stored = [getattr(rec, f).name for f in ("torso", "mesh", "report_file")]
+                transaction.on_commit(lambda: [default_storage.delete(n) for n in stored if n])
+                log.warning("job %s: registration taken over by a redelivery; this worker's torso discarded", job.uid)
+                return "claim lost"
+            rec.save()
     if rec.status == "failed":
         # the files stay for inspection, but the torso is not presented as good
         fail(job.pk, "registration: " + "; ".join(result["report"]["problems"]), claimed=claim)
