@@ -265,10 +265,18 @@ def window_curvature_bias(quadrics: np.ndarray, points: np.ndarray, cameras, win
     calibration: -0.065 mm on average, -0.17 mm where the skin is most curved; the points' signed distance to the
     true skin fitted -0.019 + 6.0 (c3 + c5) mm where the 9 px window predicts 6.5 (c3 + c5) mm).
     """
+    g = skin_per_pixel(points, cameras)[0]
+    return (quadrics[:, 3] + quadrics[:, 5]) * (window_px ** 2 / 12.0) * g ** 2
+
+
+def skin_per_pixel(points: np.ndarray, cameras) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's mm of skin per pixel ``g`` (N,: its distance to the cameras' mean centre over their mean
+    principal distance in px) and its unit direction to that centre (N, 3; world frame)."""
     eye = np.mean([c.C for c in cameras], axis=0)
     f = float(np.mean([0.5 * (c.fx + c.fy) for c in cameras]))
-    g = np.linalg.norm(np.asarray(points, dtype=float) - eye, axis=1) / f
-    return (quadrics[:, 3] + quadrics[:, 5]) * (window_px ** 2 / 12.0) * g ** 2
+    to = eye - np.asarray(points, dtype=float)
+    dist = np.linalg.norm(to, axis=1)
+    return dist / f, to / np.maximum(dist, 1e-9)[:, None]
 
 
 def window_obliquity_bias(points: np.ndarray, normals: np.ndarray, cameras, coefficient: float,
@@ -283,14 +291,10 @@ def window_obliquity_bias(points: np.ndarray, normals: np.ndarray, cameras, coef
     curvature's bias does (``g²``); frontal skin carries none of it. ``coefficient`` is measured, not derived: see
     ``ReconstructionConfig.obliquity_bias``.
     """
-    P = np.asarray(points, dtype=float)
-    eye = np.mean([c.C for c in cameras], axis=0)
-    f = float(np.mean([0.5 * (c.fx + c.fy) for c in cameras]))
-    to = eye - P
-    dist = np.linalg.norm(to, axis=1)
-    cos_theta = np.sum(np.asarray(normals, dtype=float) * to, axis=1) / np.maximum(dist, 1e-9)
+    g, to_eye = skin_per_pixel(points, cameras)
+    cos_theta = np.sum(np.asarray(normals, dtype=float) * to_eye, axis=1)
     excess = 1.0 / np.maximum(cos_theta, np.cos(np.radians(cap_deg))) - 1.0
-    return -coefficient * (dist / f) ** 2 * excess
+    return -coefficient * g ** 2 * excess
 
 
 def small_components(n_points: int, faces: np.ndarray, min_points: int) -> np.ndarray:

@@ -146,6 +146,17 @@ def upload_capture(api, key, folder: Path, **extra) -> dict:
     return r.json()
 
 
+def upload_unfinalized_capture(api, key, folder: Path) -> str:
+    """A capture's manifest and images uploaded but not finalized (in-process, finalizing would run its job at
+    once): the session's id."""
+    manifest = json.loads((folder / "capture.json").read_text())
+    sid = api.call("POST", "/api/sessions", json_body={"manifest": manifest}, key=key).json()["id"]
+    for im in manifest["images"]:
+        assert api.call("PUT", f"/api/sessions/{sid}/images/{im['camera']}",
+                        data=(folder / im["file"]).read_bytes(), key=key).status == 201
+    return sid
+
+
 def wait_for_job(api, key, job_id, timeout=900) -> dict:
     t0 = time.time()
     while True:

@@ -5,7 +5,6 @@ The embedded default (jobs in-process) with the simulator's tiny rig; the
 stuck states are what a worker killed mid-step leaves in the rows.
 """
 
-import json
 from datetime import timedelta
 
 import pytest
@@ -15,7 +14,7 @@ from django.utils import timezone
 
 from clinic import filecheck, pipeline, tasks
 from clinic.models import ArmTask, Calibration, CaptureSession, Job, Reconstruction, Rig
-from tests.service_flow import ClientApi, calibrate_set, register_rig, upload_capture
+from tests.service_flow import ClientApi, calibrate_set, register_rig, upload_capture, upload_unfinalized_capture
 
 
 def _api(client):
@@ -61,12 +60,7 @@ def test_it_hands_a_lapsed_arm_to_its_redelivery_and_refuses_a_live_one(client, 
     key = register_rig(api, clinic.pk, rig_session_1)
     assert calibrate_set(api, key, rig_session_1, "s")["state"] == "succeeded"
     # the torso's images, uploaded (not finalized: in-process, finalizing would run the job at once)
-    manifest_folder = rig_session_1 / "captures" / "visit0-a"
-    manifest = json.loads((manifest_folder / "capture.json").read_text())
-    sid = api.call("POST", "/api/sessions", json_body={"manifest": manifest}, key=key).json()["id"]
-    for im in manifest["images"]:
-        assert api.call("PUT", f"/api/sessions/{sid}/images/{im['camera']}",
-                        data=(manifest_folder / im["file"]).read_bytes(), key=key).status == 201
+    sid = upload_unfinalized_capture(api, key, rig_session_1 / "captures" / "visit0-a")
     session = CaptureSession.objects.get(uid=sid)
     CaptureSession.objects.filter(pk=session.pk).update(state=CaptureSession.FINALIZED, finalized=timezone.now())
     rig = Rig.objects.get()

@@ -2,7 +2,6 @@
 slow one stores no torso, and the job completes with one (CI, 2026-12-07: the slow worker's torso was stored
 first and the redelivery's insert failed the whole job on the unique job)."""
 
-import json
 from datetime import timedelta
 
 import pytest
@@ -10,7 +9,7 @@ from django.utils import timezone
 
 from clinic import filecheck, pipeline, tasks
 from clinic.models import ArmTask, CaptureSession, Job, Reconstruction, Rig
-from tests.service_flow import ClientApi, calibrate_set, register_rig
+from tests.service_flow import ClientApi, calibrate_set, register_rig, upload_unfinalized_capture
 
 
 @pytest.mark.django_db(transaction=True)
@@ -21,12 +20,7 @@ def test_a_registration_that_lost_its_claim_stores_no_torso(client, alice, clini
     api.login("alice", "pw-alice")
     key = register_rig(api, clinic.pk, rig_session_1)
     assert calibrate_set(api, key, rig_session_1, "s")["state"] == "succeeded"
-    folder = rig_session_1 / "captures" / "visit0-a"
-    manifest = json.loads((folder / "capture.json").read_text())
-    sid = api.call("POST", "/api/sessions", json_body={"manifest": manifest}, key=key).json()["id"]
-    for im in manifest["images"]:
-        assert api.call("PUT", f"/api/sessions/{sid}/images/{im['camera']}",
-                        data=(folder / im["file"]).read_bytes(), key=key).status == 201
+    sid = upload_unfinalized_capture(api, key, rig_session_1 / "captures" / "visit0-a")
     session = CaptureSession.objects.get(uid=sid)
     CaptureSession.objects.filter(pk=session.pk).update(state=CaptureSession.FINALIZED, finalized=timezone.now())
     rig = Rig.objects.get()
