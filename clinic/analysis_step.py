@@ -100,6 +100,7 @@ def repeat_pairs(clinic) -> int:
 def compare_reconstructions(earlier: Reconstruction, later: Reconstruction) -> Comparison:
     """Register ``later``'s torso to ``earlier``'s; the report, deformation map and its picture (once per pair)."""
     from analysis.compare import compare_torsos, write_comparison
+    from analysis.indices import analysis_from_report
     from analysis.pictures import comparison_pictures
     from analysis.torso import read_torso
 
@@ -109,10 +110,15 @@ def compare_reconstructions(earlier: Reconstruction, later: Reconstruction) -> C
     mdc = clinic_mdc(later.session.rig.clinic)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
+        # each torso's stored indices (made from its current landmarks, which a correction re-makes before it
+        # queues the comparisons again) are its analysis: the comparison shows the numbers of the torsos' own
+        # pages and does not analyse them again; a torso without them is analysed here
         result = compare_torsos(read_torso(local_copy(earlier.torso, tmp / "earlier.ply")),
                                 read_torso(local_copy(later.torso, tmp / "later.ply")),
                                 landmarks=earlier.landmarks or None, later_landmarks=later.landmarks or None,
-                                mdc={k: v["mdc"] for k, v in mdc.items()} or None)
+                                mdc={k: v["mdc"] for k, v in mdc.items()} or None,
+                                earlier_analysis=analysis_from_report(earlier.indices),
+                                later_analysis=analysis_from_report(later.indices))
         write_comparison(tmp / "out", result)
         report = json.loads((tmp / "out" / "report.json").read_text())
         anm = (mdc.get("average_normal_distance_mm") or {}).get("mdc")
