@@ -62,8 +62,8 @@ def register_rigid(moving: Torso, fixed: Torso, cfg: RigidConfig | None = None, 
 
     ``initial``: ``(R, t)`` start (default :func:`coarse_alignment`).
     ``weights_mask``: optional (N,) bool, the moving points allowed to take part.
-    Returns ``{"R", "t", "iterations", "converged", "scale_mm" (robust sigma of the
-    normal distances), "pairs", "rms_mm"}``.
+    Returns ``{"R", "t", "iterations", "converged", "cycle" (the length of the cycle of poses the iterations
+    stopped in, 0 if none), "scale_mm" (robust sigma of the normal distances), "pairs", "rms_mm"}``.
     """
     cfg = cfg or RigidConfig()
     index = fixed_index or PlaneIndex(fixed)
@@ -76,8 +76,9 @@ def register_rigid(moving: Torso, fixed: Torso, cfg: RigidConfig | None = None, 
     X, Nm = moving.points[cand], moving.normals[cand]
     dist_max = cfg.initial_distance_mm
     scale = dist_max / 3
-    converged, it = False, 0
+    converged, it, cycle = False, 0, 0
     cos_max = np.cos(np.radians(cfg.max_normal_angle_deg))
+    recent = []  # the last poses: the pair set can flip between a few states and repeat them for ever
     for it in range(1, cfg.max_iterations + 1):
         x = X @ R.T + t
         d, n, p, over = index.distances(x, cfg.max_tangential)
@@ -104,8 +105,17 @@ def register_rigid(moving: Torso, fixed: Torso, cfg: RigidConfig | None = None, 
         if np.degrees(np.linalg.norm(dx[:3])) < cfg.tol_rotation_deg and np.linalg.norm(dx[3:]) < cfg.tol_translation_mm:
             converged = True
             break
+        # back (within the tolerances, with the same acceptance distance) to a pose of 2 to cfg.cycle_max
+        # iterations ago: the iterations cycle through the same few pair sets and would only repeat them; stop
+        # (not converged: the cycle's length is reported)
+        cycle = next((lag for lag, (R0, t0, dist0) in enumerate(reversed(recent), start=1)
+                      if lag >= 2 and dist0 == dist_max and rotation_angle_deg(R @ R0.T) < cfg.tol_rotation_deg
+                      and np.linalg.norm(t - t0) < cfg.tol_translation_mm), 0)
+        if cycle:
+            break
+        recent = [*recent, (R, t, dist_max)][-cfg.cycle_max:] if cfg.cycle_max else []
     # orthonormalize against round-off
     U, _, Vt = np.linalg.svd(R)
     R = U @ Vt
-    return {"R": R, "t": t, "iterations": it, "converged": converged, "scale_mm": float(scale),
+    return {"R": R, "t": t, "iterations": it, "converged": converged, "cycle": cycle, "scale_mm": float(scale),
             "pairs": int(ok.sum()), "rms_mm": float(np.sqrt(np.mean(d[ok] ** 2)))}
