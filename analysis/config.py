@@ -35,8 +35,8 @@ class RigidConfig:
     tol_translation_mm: float = 1e-3
     sample: int = 20_000  # moving points used in the adjustment (all are used for the final figures)
     cycle_max: int = 8  # stop when the pose comes back to one of up to this many iterations ago (0: never): the
-    # pair set can flip between a few states for ever (a third of the mirror registrations of two synthetic backs
-    # ran to max_iterations that way; stopping at the cycle moved no index by more than 1e-9)
+    # pair set can flip between a few states for ever (one of the six mirror registrations of two synthetic backs
+    # ran to max_iterations in a 4-cycle; stopping at the cycle moved no index by more than 1e-9)
 
 
 @dataclass(frozen=True)
