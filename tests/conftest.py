@@ -24,23 +24,21 @@ def pytest_configure(config):
         warm_up()
 
 
-# Test files by what they cost (seconds of wall time, three workers on 2 cores; measured 2026-12-03), the
-# costliest first. pytest-xdist hands each worker whole files in collection order (make test turns its own
-# reordering, by the number of tests in a file, off): the long single-test files of real processes would
-# otherwise come last and leave the other workers idle at the end.
+# Test files by what they cost (seconds of wall time of one worker, two workers on 2 cores, Intel Xeon, measured
+# 2026-12-07 before the comparisons read stored indices), the costliest first. pytest-xdist hands each worker whole
+# files in collection order (make test turns its own reordering, by the number of tests in a file, off): the long
+# single-test files of real processes would otherwise come last and leave the other workers idle at the end.
 COST_S = {
-    "test_stability.py": 238, "test_browser_clinic_day.py": 138, "test_service_flow_postgres.py": 126,
-    "test_matching.py": 109, "test_reconstruct_torso.py": 97, "test_reconstruct_arm.py": 89,
-    "test_service_flow_embedded.py": 84, "test_broker_outage.py": 81, "test_bundle_outage.py": 81,
-    "test_worker_killed.py": 77, "test_analysis_indices.py": 62, "test_job_leases.py": 60,
-    "test_report_pdf.py": 56, "test_accessibility.py": 56, "test_pipeline_comparisons.py": 54,
-    "test_backup_restore_postgres.py": 44, "test_production_settings.py": 40, "test_landmark_correction.py": 39,
-    "test_analysis_facing.py": 39, "test_simulator_conditions.py": 38, "test_analysis_landmarks.py": 36,
-    "test_analysis_compare.py": 33, "test_api_rejects_bad_fields.py": 29, "test_analysis_cli.py": 26,
-    "test_registration_rims.py": 26, "test_history_headline.py": 25, "test_same_day_rescan_comparison.py": 24,
-    "test_bundle_sparse.py": 24, "test_browser_comparison.py": 21, "test_backup_restore.py": 20,
-    # measured alone on 2026-12-06 (Intel Xeon): the benchmarks' smoke tests
-    "test_bench_service_runs.py": 20, "test_bench_visit_runs.py": 18,
+    "test_stability.py": 151, "test_browser_clinic_day.py": 144, "test_reconstruct_torso.py": 80,
+    "test_service_flow_postgres.py": 78, "test_worker_killed.py": 71, "test_broker_outage.py": 46,
+    "test_bundle_outage.py": 43, "test_analysis_indices.py": 40, "test_pipeline_comparisons.py": 39,
+    "test_accessibility.py": 37, "test_report_pdf.py": 35, "test_job_leases.py": 33,
+    "test_service_flow_embedded.py": 32, "test_registration_taken_over.py": 29, "test_landmark_correction.py": 28,
+    "test_arms_crossed_before_the_chest.py": 27, "test_analysis_landmarks.py": 23, "test_analysis_facing.py": 22,
+    "test_a_scan_cut_on_the_neck_asks_for_the_vertebra_prominens.py": 21, "test_analysis_compare.py": 21,
+    "test_backup_restore_postgres.py": 20, "test_bench_service_runs.py": 20, "test_api_rejects_bad_fields.py": 20,
+    "test_simulator_conditions.py": 19, "test_browser_comparison.py": 18, "test_production_settings.py": 17,
+    "test_backup_restore.py": 17, "test_registration_rims.py": 16,
 }
 
 
