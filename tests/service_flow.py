@@ -157,6 +157,18 @@ def upload_unfinalized_capture(api, key, folder: Path) -> str:
     return sid
 
 
+def finalized_without_its_job(api, key, folder: Path):
+    """A capture uploaded and marked finalized in the database, as finalizing would, but with no job run (the
+    tests build the job's half-done state themselves): its ``CaptureSession``."""
+    from django.utils import timezone
+
+    from clinic.models import CaptureSession
+
+    session = CaptureSession.objects.get(uid=upload_unfinalized_capture(api, key, folder))
+    CaptureSession.objects.filter(pk=session.pk).update(state=CaptureSession.FINALIZED, finalized=timezone.now())
+    return session
+
+
 def wait_for_job(api, key, job_id, timeout=900) -> dict:
     t0 = time.time()
     while True:

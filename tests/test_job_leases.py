@@ -14,7 +14,7 @@ from django.utils import timezone
 
 from clinic import filecheck, pipeline, tasks
 from clinic.models import ArmTask, Calibration, CaptureSession, Job, Reconstruction, Rig
-from tests.service_flow import ClientApi, calibrate_set, register_rig, upload_capture, upload_unfinalized_capture
+from tests.service_flow import ClientApi, calibrate_set, finalized_without_its_job, register_rig, upload_capture
 
 
 def _api(client):
@@ -59,10 +59,8 @@ def test_it_hands_a_lapsed_arm_to_its_redelivery_and_refuses_a_live_one(client, 
     api = _api(client)
     key = register_rig(api, clinic.pk, rig_session_1)
     assert calibrate_set(api, key, rig_session_1, "s")["state"] == "succeeded"
-    # the torso's images, uploaded (not finalized: in-process, finalizing would run the job at once)
-    sid = upload_unfinalized_capture(api, key, rig_session_1 / "captures" / "visit0-a")
-    session = CaptureSession.objects.get(uid=sid)
-    CaptureSession.objects.filter(pk=session.pk).update(state=CaptureSession.FINALIZED, finalized=timezone.now())
+    # the torso's images, uploaded and marked finalized without running its job (in-process it would run at once)
+    session = finalized_without_its_job(api, key, rig_session_1 / "captures" / "visit0-a")
     rig = Rig.objects.get()
     # a reconstruction in its arms: A's worker was killed (lease lapsed), B's is alive, C and D wait
     job = Job.objects.create(kind=Job.RECONSTRUCTION, rig=rig, session=session, calibration=rig.current_calibration,

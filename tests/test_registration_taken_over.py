@@ -8,8 +8,8 @@ import pytest
 from django.utils import timezone
 
 from clinic import filecheck, pipeline, tasks
-from clinic.models import ArmTask, CaptureSession, Job, Reconstruction, Rig
-from tests.service_flow import ClientApi, calibrate_set, register_rig, upload_unfinalized_capture
+from clinic.models import ArmTask, Job, Reconstruction, Rig
+from tests.service_flow import ClientApi, calibrate_set, finalized_without_its_job, register_rig
 
 
 @pytest.mark.django_db(transaction=True)
@@ -20,9 +20,7 @@ def test_a_registration_that_lost_its_claim_stores_no_torso(client, alice, clini
     api.login("alice", "pw-alice")
     key = register_rig(api, clinic.pk, rig_session_1)
     assert calibrate_set(api, key, rig_session_1, "s")["state"] == "succeeded"
-    sid = upload_unfinalized_capture(api, key, rig_session_1 / "captures" / "visit0-a")
-    session = CaptureSession.objects.get(uid=sid)
-    CaptureSession.objects.filter(pk=session.pk).update(state=CaptureSession.FINALIZED, finalized=timezone.now())
+    session = finalized_without_its_job(api, key, rig_session_1 / "captures" / "visit0-a")
     rig = Rig.objects.get()
     job = Job.objects.create(kind=Job.RECONSTRUCTION, rig=rig, session=session, calibration=rig.current_calibration,
                              state=Job.RUNNING, stage="arms", percent=5, attempt=1, claimed=timezone.now(),
