@@ -560,14 +560,20 @@ def patient_trend(request, patient_id):
         png = pictures.trend_picture([(str(d), ind) for d, _, ind in series], Path(tmp) / "trend.png", mdc=mdc,
                                      figures=figures)
         data = Path(png).read_bytes()
-    try:  # the older states' pictures of this patient go
+    _store_replacing_older_states(name, data)
+    return HttpResponse(data, content_type="image/png")
+
+
+def _store_replacing_older_states(name: str, data: bytes) -> None:
+    """Store a drawing under ``name`` (its folder holds one patient's or rig's drawings, one file per state of
+    what it plots) and delete that folder's drawings of older states: only the latest state is ever asked for."""
+    try:
         folder = str(Path(name).parent)
         for old in default_storage.listdir(folder)[1]:
             default_storage.delete(f"{folder}/{old}")
     except (OSError, NotImplementedError):
         pass
     default_storage.save(name, ContentFile(data))
-    return HttpResponse(data, content_type="image/png")
 
 
 @login_required
@@ -918,13 +924,7 @@ def rig_stability_chart(request, serial):
     if default_storage.exists(name):
         return FileResponse(default_storage.open(name, "rb"), content_type="image/svg+xml")
     data = _stability_svg(series).encode()
-    try:  # the older states' charts of this rig go
-        folder = str(Path(name).parent)
-        for old in default_storage.listdir(folder)[1]:
-            default_storage.delete(f"{folder}/{old}")
-    except (OSError, NotImplementedError):
-        pass
-    default_storage.save(name, ContentFile(data))
+    _store_replacing_older_states(name, data)
     return HttpResponse(data, content_type="image/svg+xml")
 
 

@@ -31,3 +31,6 @@ def test_the_trend_is_served_from_the_cache_on_the_second_request(client, charli
     rec.indices = {**rec.indices, "hump_mm": 99.0}
     rec.save()
     assert client.get(url).status_code == 200 and len(calls) == 2
+    # only the latest state's picture stays in storage
+    from django.core.files.storage import default_storage
+    assert len(default_storage.listdir(f"trends/patient-{patient_with_two_visits.pk}")[1]) == 1
