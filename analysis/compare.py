@@ -99,7 +99,7 @@ def compare_torsos(earlier: Torso, later: Torso, cfg: AnalysisConfig | None = No
         "signed_distance_mm": {k: v for k, v in _stats(deformation).items() if k in ("mean", "p05", "p95")},
         "transform": {"R": R.tolist(), "t": t.tolist(), "rotation_deg": rotation_angle_deg(R),
                       "maps": "later torso frame -> earlier torso frame: x_earlier = R x_later + t (mm)"},
-        "registration": {"iterations": reg["iterations"], "converged": reg["converged"],
+        "registration": {"iterations": reg["iterations"], "converged": reg["converged"], "cycle": reg["cycle"],
                          "robust_sigma_mm": reg["scale_mm"], "pairs": reg["pairs"]},
         "match_distance_mm": cc.match_distance_mm,
     }

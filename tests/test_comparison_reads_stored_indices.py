@@ -29,6 +29,9 @@ def test_a_comparison_from_stored_reports_equals_one_that_analyses_both_torsos()
     reread = compare_torsos(a, b, mdc=mdc, earlier_analysis=analysis_from_report(_stored(a)),
                             later_analysis=analysis_from_report(_stored(b)))
     assert "growth" in fresh["report"] and "indices" in fresh["report"]
+    # how the rigid registration ended: converged, or stopped in a cycle of that many iterations (never both)
+    reg = fresh["report"]["registration"]
+    assert isinstance(reg["cycle"], int) and reg["cycle"] >= 0 and not (reg["converged"] and reg["cycle"])
     assert json.dumps(clean(reread["report"]), sort_keys=True) == json.dumps(clean(fresh["report"]), sort_keys=True)
     np.testing.assert_array_equal(reread["deformation_mm"], fresh["deformation_mm"])
     assert all(np.array_equal(reread["regions"][k], fresh["regions"][k]) for k in fresh["regions"])
