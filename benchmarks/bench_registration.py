@@ -45,6 +45,18 @@ VARIANTS = {
     "ours_no_rim_margin": {"rim_margin_mm": None},
     "ours_rim_margin_3": {"rim_margin_mm": 3.0},
     "ours_rim_margin_7": {"rim_margin_mm": 7.0},
+    "ours_rim_margin_10": {"rim_margin_mm": 10.0},
+    "ours_all_points": {"max_points_per_pair": None},
+    "ours_all_patches": {"max_patch_edge": None},
+    "ours_min_distance_0.3": {"min_distance_mm": 0.3},
+    "ours_flat_patches": {"curved_patches": False},
+    "ours_rim_margin_1": {"rim_margin_mm": 1.0},
+    "ours_rim_margin_2": {"rim_margin_mm": 2.0},
+    "ours_rim_margin_fixed_5": {"rim_margin_g2_mm": None},  # the rule before 9 mm * g^2: 5 mm on every rig
+    "ours_rim_margin_0.6": {"rim_margin_mm": 0.6},
+    "ours_rim_margin_1.7": {"rim_margin_mm": 1.7},
+    "ours_no_rim_margin_all_patches": {"rim_margin_mm": None, "max_patch_edge": None},
+    "ours_no_rim_margin_flat_patches": {"rim_margin_mm": None, "curved_patches": False},
 }
 # precision weights (weighted), a scale prior (scale_sigma) and each pair's error as a nuisance (pair_sigma,
 # pair_stiffness) were measured here and left the engine (docs/benchmarks.md, fifth session; git history)
