@@ -52,14 +52,14 @@ VARIANTS = {
     "ours_flat_patches": {"curved_patches": False},
     "ours_rim_margin_1": {"rim_margin_mm": 1.0},
     "ours_rim_margin_2": {"rim_margin_mm": 2.0},
-    "ours_rim_margin_fixed_5": {"rim_margin_g2_mm": None},  # the rule before 9 mm * g^2: 5 mm on every rig
     "ours_rim_margin_0.6": {"rim_margin_mm": 0.6},
     "ours_rim_margin_1.7": {"rim_margin_mm": 1.7},
     "ours_no_rim_margin_all_patches": {"rim_margin_mm": None, "max_patch_edge": None},
     "ours_no_rim_margin_flat_patches": {"rim_margin_mm": None, "curved_patches": False},
 }
 # precision weights (weighted), a scale prior (scale_sigma) and each pair's error as a nuisance (pair_sigma,
-# pair_stiffness) were measured here and left the engine (docs/benchmarks.md, fifth session; git history)
+# pair_stiffness) were measured here and left the engine (docs/benchmarks.md, fifth session; git history); so was a
+# rim margin of 9 mm * g^2 (at most 5 mm; 20123e5, reverted: docs/benchmarks.md, "Registration alone")
 DEFAULT_VARIANTS = ["ours", "ours_free_scale"]
 
 

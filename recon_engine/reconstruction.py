@@ -27,7 +27,7 @@ from .parallel import cores
 from .registration import (ICPatchConfig, Transform, chain_initial, multi_surface_registration, pair_fit,
                            patch_indices, weak_arms)
 from .surface import (PointSurface, flank_faces, in_patches, local_quadrics, make_surface, nearest_points,
-                      off_surface, off_surface_again, skin_per_pixel, small_components, subset, window_curvature_bias,
+                      off_surface, off_surface_again, small_components, subset, window_curvature_bias,
                       window_obliquity_bias)
 from .matching import reason_counts
 from .tracking import TrackingConfig, track_images
@@ -515,10 +515,6 @@ def register_arms(surfaces: dict, arm_reports: dict, failed: dict, rig: Rig, cal
     t1 = time.perf_counter()
     fused = surfaces  # every point goes into the torso; the registration sees the points in the arms' patches
     surfaces = {a: in_patches(s) for a, s in surfaces.items()}
-    # each arm's mm of skin per pixel: how wide a rim the multiple registration leaves out (rim_margins)
-    arm_cameras = {arm.id: [calibration.cameras[c] for c in arm.cameras] for arm in rig.arms}
-    skin = {a: float(np.median(skin_per_pixel(s.points, arm_cameras[a])[0])) if len(s.points) else 1.0
-            for a, s in surfaces.items()}
     T, pairwise, closing = ({reference: Transform.identity()}, [], None)
     multi = {"transforms": T, "pairs": [], "sigmas": {}, "iterations": 0, "converged": True}
     problems, warnings, weak = [], [], {}
@@ -538,8 +534,7 @@ def register_arms(surfaces: dict, arm_reports: dict, failed: dict, rig: Rig, cal
             closing = {"a": last, "b": reference,
                        **pair_fit(surfaces[last], surfaces[reference], T[last], T[reference], 2.0, icfg)}
         progress("multiple surface registration")
-        multi = multi_surface_registration(surfaces, order, reference, T, icfg, progress=progress, indices=indices,
-                                           skin_per_pixel=skin)
+        multi = multi_surface_registration(surfaces, order, reference, T, icfg, progress=progress, indices=indices)
         return multi, pairwise, closing
 
     if len(order) > 1:
@@ -620,7 +615,6 @@ def register_arms(surfaces: dict, arm_reports: dict, failed: dict, rig: Rig, cal
             "sigmas": multi["sigmas"],
             "strength": multi.get("strength", {}),
             "iterations": multi["iterations"], "converged": multi["converged"],
-            "skin_per_pixel_mm": skin, "rim_margins_mm": multi.get("rim_margins_mm", {}),
         },
         "arms": arm_reports, "failed_arms": failed,
         # the patient's facing from the rig's footplate: the analysis's evidence of left and right

@@ -51,18 +51,11 @@ class ICPatchConfig:
     # arms C and D took scales of 0.9972 and 0.9970 (3 mm at 1 m) and the torso's RMS was 1.06 mm (rigid 0.53)
     estimate_scale: bool = False
     # mm (None: off): point-patch pairs whose point lies this close to its own surface's rim, or whose foot this
-    # close to the other surface's rim, are not used in the multiple registration: what the arms see most
-    # obliquely carries the most matching bias. Given each arm's mm of skin per pixel g (the caller's
-    # ``skin_per_pixel``), a pair's margin is rim_margin_g2_mm * g^2 (the pair's mean), at most rim_margin_mm:
-    # the window biases grow with g^2 (surface.window_obliquity_bias), and where they are small the rims'
-    # lever arm holds the arms' rotation. Tuning seeds, registration alone on the same surfaces, mean
-    # displacement error of arms B, C, D: paper seed 0 (g 0.29) 5 mm 0.0075 mm (0.0019 deg), 2 mm 0.0061,
-    # 1 mm 0.0057, 0.6 mm 0.0056, none 0.0056 (0.0009 deg); cheaper rig seed 41 (g 0.87) none 0.064, 3 mm 0.056,
-    # 5 mm 0.046, 7 mm 0.036, 10 mm 0.046. 9 mm * g^2 gives 0.77 mm at paper scale and reaches the 5 mm cap at
-    # g 0.75, so the cheaper, demo and tiny rigs keep 5 mm (a wider cap would change the demo rig's measured MDC).
-    # The report's Table 1 still measures the fit over the whole overlap
+    # close to the other surface's rim, are not used in the multiple registration. At the true placement the
+    # points within 10 mm of a rim lie 1-11 um below the skin and the other's patches there 2-8 um (visit0-a).
+    # 5 mm: displacement error 0.0172 -> 0.0106 mm over 9 arms (docs/benchmarks.md); 10 mm leaves the narrow
+    # overlaps too few pairs. The report's Table 1 still measures the fit over the whole overlap
     rim_margin_mm: float | None = 5.0
-    rim_margin_g2_mm: float | None = 9.0  # None: rim_margin_mm whatever g
     # patches with an edge longer than this many median edges are not used (None: all): long patches are chords
     # below the curved skin where an arm sees it obliquely, and their sagitta biases the solution. Paper scale,
     # visit0-a, our calibration, flat patches, displacement errors of B, C, D: all patches 0.0028-0.0054 deg, 0.032-0.055 mm;
@@ -711,25 +704,9 @@ def fit_table(surfaces: dict, forward_pairs: list, residuals: dict, sample: dict
     return rows
 
 
-def rim_margins(pairs: list, cfg: ICPatchConfig, skin_per_pixel: dict | None = None) -> dict:
-    """Each pair's rim margin (mm, or None: no pair is left out for its rim), see ``ICPatchConfig.rim_margin_mm``.
-
-    ``skin_per_pixel``: each arm's mm of skin per pixel ``g`` (e.g. the median of
-    :func:`recon_engine.surface.skin_per_pixel` over its points); without it, or
-    without ``rim_margin_g2_mm``, every pair's margin is ``rim_margin_mm``.
-    """
-    if cfg.rim_margin_mm is None:
-        return {p: None for p in pairs}
-    if cfg.rim_margin_g2_mm is None or not skin_per_pixel:
-        return {p: cfg.rim_margin_mm for p in pairs}
-    return {(a, b): min(cfg.rim_margin_mm,
-                        cfg.rim_margin_g2_mm * 0.5 * (skin_per_pixel[a] ** 2 + skin_per_pixel[b] ** 2))
-            for (a, b) in pairs}
-
-
 def multi_surface_registration(surfaces: dict, order: list, reference: str, initial: dict,
                                cfg: ICPatchConfig | None = None, progress=lambda msg: None,
-                               indices: dict | None = None, skin_per_pixel: dict | None = None) -> dict:
+                               indices: dict | None = None) -> dict:
     """All surfaces in one least-squares adjustment, ``reference`` held fixed.
 
     Observations: the normal distances of every neighbouring pair's
@@ -737,9 +714,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
     pair that closes it), so the misclosure of a chain of pair-wise results is
     spread over all pairs instead of piling up at the end. ``initial``: each
     arm's placement in the reference arm's frame (the pair-wise solution);
-    ``indices``: :func:`patch_indices` of the surfaces, if already built;
-    ``skin_per_pixel``: each arm's mm of skin per pixel, which sets the pairs'
-    rim margins (:func:`rim_margins`).
+    ``indices``: :func:`patch_indices` of the surfaces, if already built.
 
     Steps: each pair's patch set (:func:`choose_patches`); then, until the
     corrections vanish, the pairs' correspondences (kept after
@@ -770,9 +745,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
     index, which = pair_patch_sets(surfaces, pairs, sample, indices, T, dist, cfg)
     near = {p: {} for p in pairs}
     # each observed point's distance to its own surface's rim (mm), where the rim rule asks for it
-    margin = rim_margins(pairs, cfg, skin_per_pixel)
-    pair_cfg = {p: replace(cfg, rim_margin_mm=margin[p]) for p in pairs}
-    rim_distance = {p: indices[p[0]][0].vertex_rim_distance[sample[p]] if margin[p] is not None else None
+    rim_distance = {p: indices[p[0]][0].vertex_rim_distance[sample[p]] if cfg.rim_margin_mm is not None else None
                     for p in pairs}
     scale_weight = 0.0 if cfg.estimate_scale else 1e12
     converged, it, frozen, weak = False, 0, {}, set()
@@ -785,7 +758,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
             def fresh(p):
                 a, b = p
                 return correspondences(surfaces[a].points[sample[p]], surfaces[a].normals[sample[p]], index[p],
-                                       T[b].inverse().compose(T[a]), dist[p], pair_cfg[p], near[p], rim_distance[p])
+                                       T[b].inverse().compose(T[a]), dist[p], cfg, near[p], rim_distance[p])
             with ThreadPoolExecutor(cores(cfg.threads)) as pool:
                 frozen.update(zip(pairs, pool.map(fresh, pairs)))
         # a pair that barely overlaps says nothing reliable: it is left out (and reported)
@@ -822,8 +795,7 @@ def multi_surface_registration(surfaces: dict, order: list, reference: str, init
         else:
             progress(f"multiple registration {row['a']}-{row['b']}: left out, the surfaces barely overlap")
     return {"transforms": T, "sigmas": sig, "strength": strength, "pairs": pair_rows, "iterations": it,
-            "converged": converged, "sigma0_mm": s0, "left_out": sorted(f"{a}-{b}" for a, b in weak),
-            "rim_margins_mm": {f"{a}-{b}": margin[(a, b)] for (a, b) in neighbour_pairs(arms)}}
+            "converged": converged, "sigma0_mm": s0, "left_out": sorted(f"{a}-{b}" for a, b in weak)}
 
 
 def arm_strength(cov: np.ndarray, points: np.ndarray, centre: np.ndarray, max_points: int = 5000) -> dict:

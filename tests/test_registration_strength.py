@@ -47,18 +47,12 @@ def four_arm_surfaces(smooth_c, n=3000, noise=0.02, seed=0):
     return surfaces, truth
 
 
-def register(surfaces, icpatch=None, principal_distance_px=1500.0):
+def register(surfaces, icpatch=None):
     from recon_engine.reconstruction import TorsoConfig
 
-    # each arm's camera where four_arm_surfaces' arm looks from, 1500 mm out; with the default principal distance
-    # about 1 mm of skin per pixel, a coarse rig, so the multiple registration leaves out 5 mm rims
-    eyes = {a: 1500.0 * np.array([np.cos(np.radians(90.0 * k)), 0.0, np.sin(np.radians(90.0 * k))])
-            for k, a in enumerate(ARMS)}
-    rig = SimpleNamespace(arms=tuple(SimpleNamespace(id=a, cameras=(a + "1",)) for a in ARMS),
+    rig = SimpleNamespace(arms=tuple(SimpleNamespace(id=a) for a in ARMS),
                           reference_arm=SimpleNamespace(id="A"))
-    cal = SimpleNamespace(frame="test", cameras={a + "1": SimpleNamespace(C=eyes[a], fx=principal_distance_px,
-                                                                                  fy=principal_distance_px)
-                                                 for a in ARMS})
+    cal = SimpleNamespace(frame="test")
     cfg = TorsoConfig(icpatch=icpatch or ICPatchConfig())
     return register_arms(surfaces, {a: {} for a in surfaces}, {}, rig, cal, cfg)
 
