@@ -45,8 +45,8 @@ from . import pipeline
 from .imageheaders import HeaderError, image_size
 from .validation import (MAX_ID, MAX_INTERVAL_DAYS, MAX_NOTES, MAX_POSES, DbId, Invalid, check_capture, check_json,
                          check_length, check_param, check_rig, text)
-from .models import (CaptureImage, CaptureSession, Job, Member, Patient, Reconstruction, Rig, RigKey, TestField,
-                     Visit, clinics_of, image_path)
+from .models import (CaptureImage, CaptureSession, Clinic, Job, Member, Patient, Reconstruction, Rig, RigKey,
+                     TestField, Visit, captures_of, clinics_of, image_path, jobs_of)
 
 CHUNK = 1 << 20
 RETRY_AFTER_SECONDS = 30  # what a 503 asks the rig to wait before retrying
@@ -191,15 +191,19 @@ def member_clinic(request, clinic_id, roles=(Member.ADMINISTRATOR, Member.TECHNI
 
 
 def _sessions_for(request):
+    """The capture sessions the caller may see: a rig its own, of its clinic's patients; a member its clinics'
+    (a patient's scan is its patient's clinic's, :func:`clinic.models.captures_of`)."""
     if getattr(request, "rig", None) is not None:
-        return CaptureSession.objects.filter(rig=request.rig)
-    return CaptureSession.objects.filter(rig__clinic__in=clinics_of(request.user))
+        rig = request.rig
+        return CaptureSession.objects.filter(captures_of(Clinic.objects.filter(pk=rig.clinic_id)), rig=rig)
+    return CaptureSession.objects.filter(captures_of(clinics_of(request.user)))
 
 
 def _jobs_for(request):
     if getattr(request, "rig", None) is not None:
-        return Job.objects.filter(rig=request.rig)
-    return Job.objects.filter(rig__clinic__in=clinics_of(request.user))
+        rig = request.rig
+        return Job.objects.filter(jobs_of(Clinic.objects.filter(pk=rig.clinic_id)), rig=rig)
+    return Job.objects.filter(jobs_of(clinics_of(request.user)))
 
 
 def _job_out(job: Job) -> dict:
@@ -807,10 +811,19 @@ def rerun_job(request, job_id: str):
     """Run a failed job again (its capture was kept), e.g. after the rig was calibrated.
 
     A job stuck running whose worker died (every lease lapsed) is re-run too;
-    409 while a worker holds it. A queued job is sent to the broker again.
+    409 while a worker holds it. A queued job is sent to the broker again. A
+    finished scan whose landmarks a clinician corrected is re-run only by an
+    administrator (403 for a technician): its torso is made anew, without them.
     """
     job = get_object_or_404(_jobs_for(request), uid=_uuid(job_id))
-    member_clinic(request, job.rig.clinic_id)
+    member = member_clinic(request, job.clinic_id)
+    rec = Reconstruction.objects.filter(job=job).first()
+    corrected = rec is not None and bool(rec.landmarks or rec.landmark_history)
+    if corrected and not Member.objects.filter(user=request.user, clinic=member,
+                                               role=Member.ADMINISTRATOR).exists():
+        # re-running makes the torso anew: the landmarks a clinician corrected on it would be gone
+        raise ApiError(403, "a clinician corrected this scan's landmarks, and re-running it would discard the "
+                            "corrections; ask a clinic administrator")
     try:
         job = pipeline.rerun(job)
     except pipeline.JobError as exc:

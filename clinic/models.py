@@ -44,6 +44,25 @@ def clinics_of(user):
     return Clinic.objects.filter(members__user=user)
 
 
+def captures_of(clinics, via: str = "") -> models.Q:
+    """The condition that a capture session (reached through ``via``, e.g. ``"session"``) belongs to ``clinics``.
+
+    A patient's capture belongs to the patient's clinic, wherever its rig has gone since; a capture with no
+    visit (a test field's) to its rig's clinic. A rig handed to another clinic takes none of its patients'
+    scans with it.
+    """
+    p = f"{via}__" if via else ""
+    return (models.Q(**{f"{p}visit__patient__clinic__in": clinics})
+            | models.Q(**{f"{p}visit__isnull": True, f"{p}rig__clinic__in": clinics}))
+
+
+def jobs_of(clinics) -> models.Q:
+    """The condition that a job belongs to ``clinics``: through its session (:func:`captures_of`: a comparison's
+    and a landmark correction's session is its later torso's) or, without one, its rig's clinic."""
+    return (models.Q(session__isnull=False) & captures_of(clinics, "session")) | models.Q(
+        session__isnull=True, rig__clinic__in=clinics)
+
+
 class Patient(models.Model):
     SEXES = [("F", "Female"), ("M", "Male"), ("X", "Other / not stated")]
 
@@ -260,6 +279,12 @@ class Job(models.Model):
     created = models.DateTimeField(default=timezone.now)
     started = models.DateTimeField(null=True, blank=True)
     finished = models.DateTimeField(null=True, blank=True)
+
+    @property
+    def clinic_id(self):
+        """The clinic the job belongs to (:func:`jobs_of`): its session's patient's, else its rig's."""
+        visit = self.session.visit if self.session_id else None
+        return visit.patient.clinic_id if visit is not None else self.rig.clinic_id
 
     class Meta:
         ordering = ["-created"]

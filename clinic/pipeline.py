@@ -17,7 +17,7 @@ import logging
 import shutil
 import tempfile
 import threading
-import traceback
+import secrets
 from datetime import timedelta
 from pathlib import Path
 
@@ -111,11 +111,13 @@ class heartbeat:
 
 
 def _engine_error(exc: Exception) -> str:
+    """The job's error in words for the pages and the API. An unexpected fault's traceback goes to the server's
+    log under an id the job's error names: the pages and the rig's API never show the server's code."""
     if isinstance(exc, (FormatError, ValueError, JobError)):
         return str(exc)
-    # an unexpected fault: keep the type and the last frames for whoever reads the job
-    tb = traceback.format_exception(type(exc), exc, exc.__traceback__)
-    return f"{type(exc).__name__}: {exc}\n" + "".join(tb[-4:])
+    error_id = secrets.token_hex(4)
+    log.error("internal fault %s in a job", error_id, exc_info=exc)
+    return f"{type(exc).__name__}: {str(exc)[:300]} (an internal fault; its traceback is in the server's log as {error_id})"
 
 
 # --- dispatch ------------------------------------------------------------------

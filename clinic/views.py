@@ -1,10 +1,13 @@
 """The clinicians' pages: patients, a patient's history, a visit, a comparison, a rig.
 
 Every query goes through ``clinics_of(request.user)``: anything outside the
-user's clinics is a 404. What a member may change depends on their role, and
-the pages ask the API's rule (below), so a page never allows what the API
-forbids. Pages are plain HTML (a running job's page refreshes itself with a
-meta tag, no JavaScript needed).
+user's clinics is a 404 (a patient's scans are the patient's clinic's, wherever
+the rig has gone since: ``captures_of``). What a member may change depends on
+their role, and the pages ask the API's rule (below), so a page never allows
+what the API forbids, with one exception: every member who may see a
+comparison may have a failed one computed again ("Try again"; it is derived
+from two stored scans and discards nothing). Pages are plain HTML (a running
+job's page refreshes itself with a meta tag, no JavaScript needed).
 """
 
 import functools
@@ -37,7 +40,7 @@ from django.views.decorators.http import require_http_methods, require_POST
 
 from . import api, labels, pipeline
 from .models import (CaptureSession, Comparison, Job, Member, Patient, Reconstruction, Rig, StabilityCheck, Visit,
-                     clinics_of)
+                     captures_of, clinics_of, jobs_of)
 from .validation import MAX_NOTES
 
 # Who may do what. Actions the API has (re-running a job, issuing and revoking a rig's keys) are run through
@@ -108,7 +111,7 @@ def _patients(user):
 
 
 def _reconstructions(user):
-    return Reconstruction.objects.filter(session__rig__clinic__in=clinics_of(user))
+    return Reconstruction.objects.filter(captures_of(clinics_of(user), "session"))
 
 
 def _good_recs():
@@ -954,7 +957,7 @@ def picture(request, kind, pk, name):
     if kind == "reconstruction":
         obj = get_object_or_404(_reconstructions(request.user), pk=pk)
     elif kind == "comparison":
-        obj = get_object_or_404(Comparison.objects.filter(later__session__rig__clinic__in=clinics_of(request.user)),
+        obj = get_object_or_404(Comparison.objects.filter(captures_of(clinics_of(request.user), "later__session")),
                                 pk=pk)
     else:
         raise Http404(kind)
@@ -971,7 +974,7 @@ def picture_page(request, kind, pk, name):
         obj = get_object_or_404(_reconstructions(request.user), pk=pk)
         rec, subject = obj, None
     elif kind == "comparison":
-        obj = get_object_or_404(Comparison.objects.filter(later__session__rig__clinic__in=clinics_of(request.user)),
+        obj = get_object_or_404(Comparison.objects.filter(captures_of(clinics_of(request.user), "later__session")),
                                 pk=pk)
         rec, subject = obj.later, obj
     else:
@@ -991,7 +994,7 @@ def picture_page(request, kind, pk, name):
 @login_required
 @require_POST
 def rerun(request, job_id):
-    job = get_object_or_404(Job.objects.filter(rig__clinic__in=clinics_of(request.user)), uid=job_id)
+    job = get_object_or_404(Job.objects.filter(jobs_of(clinics_of(request.user))), uid=job_id)
     target = reverse("visit", args=[job.session.visit_id]) if job.session and job.session.visit_id else "/"
     try:
         _run_api(api.rerun_job, request, str(job.uid))
