@@ -265,22 +265,44 @@ def _body(request, limit: int, what: str):
 def _spool(stream, limit: int, what: str, status: int = 413):
     """Copy a request (or zip member) stream to a temporary file in chunks: (file, sha256, size).
 
-    Counts what it reads, whatever the stream claimed (a zip member's declared size may lie)."""
-    tmp = tempfile.NamedTemporaryFile(dir=settings.FILE_UPLOAD_TEMP_DIR, suffix=".part")
+    Counts what it reads, whatever the stream claimed (a zip member's declared size may lie). The server's own
+    disk failing (full, say) is a 503: the rig keeps the capture and retries."""
+    tmp = None
     digest, size = hashlib.sha256(), 0
-    while True:
-        chunk = stream.read(CHUNK)
-        if not chunk:
-            break
-        size += len(chunk)
-        if size > limit:
+    try:
+        tmp = tempfile.NamedTemporaryFile(dir=settings.FILE_UPLOAD_TEMP_DIR, suffix=".part")
+        while True:
+            chunk = stream.read(CHUNK)  # a client that stops sending raises here: not the disk's fault
+            if not chunk:
+                break
+            size += len(chunk)
+            if size > limit:
+                tmp.close()
+                raise ApiError(status, f"{what} is larger than {limit} bytes")
+            digest.update(chunk)
+            try:
+                tmp.write(chunk)
+            except OSError as exc:
+                raise _DiskFailed(exc) from None
+        try:
+            tmp.flush()
+        except OSError as exc:
+            raise _DiskFailed(exc) from None
+    except (_DiskFailed, OSError) as exc:
+        if isinstance(exc, OSError) and tmp is not None:  # the stream's error, not the folder's
             tmp.close()
-            raise ApiError(status, f"{what} is larger than {limit} bytes")
-        digest.update(chunk)
-        tmp.write(chunk)
-    tmp.flush()
+            raise
+        if tmp is not None:
+            tmp.close()
+        cause = exc.args[0] if isinstance(exc, _DiskFailed) else exc
+        log.error("the upload folder failed taking %s: %s", what, cause)
+        raise Unavailable(f"the server could not take {what} ({cause.strerror or type(cause).__name__})") from None
     tmp.seek(0)
     return tmp, digest.hexdigest(), size
+
+
+class _DiskFailed(Exception):
+    """The upload folder failed (``args[0]``: the OSError), as opposed to the client's stream."""
 
 
 def _check_image(tmp, rig, image: CaptureImage, where: str):
@@ -314,6 +336,9 @@ def _create_session(rig: Rig, body: SessionIn, key: str):
     check_capture(capture, body.manifest, "capture.json")
     existing = CaptureSession.objects.filter(rig=rig, idempotency_key=key).first()
     if existing is not None:
+        if existing.manifest_sha256 != _canonical_sha256(body.manifest):
+            raise ApiError(409, f"session {existing.uid} was opened with another capture.json under the same "
+                                "Idempotency-Key; send a new key for a new capture")
         return existing, False
     visit = testfield = None
     if capture.kind == "torso":
@@ -326,6 +351,12 @@ def _create_session(rig: Rig, body: SessionIn, key: str):
         if testfield is None:
             raise ApiError(400, f"capture.json: test field {capture.testfield!r} is not registered for "
                                 f"{rig.clinic.name}")
+        calibration_set = body.calibration_set or capture.captured_at[:10]
+        done = Job.objects.filter(kind=Job.CALIBRATION, rig=rig, sessions__calibration_set=calibration_set).first()
+        if done is not None:
+            # the set's poses were calibrated (or failed to) already: a pose added now would start nothing
+            raise ApiError(409, f"calibration set {calibration_set!r} of rig {rig.serial} was already calibrated "
+                                f"(job {done.uid}, {done.state}); send the new poses under a new calibration_set")
     try:
         with transaction.atomic():
             session = CaptureSession.objects.create(
@@ -372,7 +403,9 @@ def _start_jobs(s: CaptureSession):
                                  calibration=s.rig.current_calibration)
         pipeline.dispatch(job)
         return
-    # a test-field set is calibrated once all its poses are in
+    # a test-field set is calibrated once all its poses are in. The rig's row is locked first: two last poses
+    # finalized at once would each count the other's as missing (neither sees the other's uncommitted state)
+    Rig.objects.select_for_update().filter(pk=s.rig_id).first()
     group = CaptureSession.objects.filter(rig=s.rig, kind="testfield", calibration_set=s.calibration_set,
                                           state__in=[s.FINALIZED, s.PARTIAL])
     expected = s.poses_expected or s.rig.poses_per_calibration
@@ -806,6 +839,9 @@ def create_visit(request, body: VisitIn, patient_id: int = PathParam(..., ge=1, 
     return _respond(request, {"id": v.pk, "date": str(v.date)}, 201)
 
 
+RERUN_LANDMARKS = (Member.ADMINISTRATOR, Member.TECHNICIAN, Member.CLINICIAN)
+
+
 @api.post("/jobs/{job_id}/rerun", auth=django_auth, tags=["staff"])
 def rerun_job(request, job_id: str):
     """Run a failed job again (its capture was kept), e.g. after the rig was calibrated.
@@ -816,7 +852,9 @@ def rerun_job(request, job_id: str):
     administrator (403 for a technician): its torso is made anew, without them.
     """
     job = get_object_or_404(_jobs_for(request), uid=_uuid(job_id))
-    member = member_clinic(request, job.clinic_id)
+    # a landmark correction's job is the clinician's too (a server fault left the correction kept, not applied)
+    member = member_clinic(request, job.clinic_id, RERUN_LANDMARKS if job.kind == Job.LANDMARKS else
+                           (Member.ADMINISTRATOR, Member.TECHNICIAN))
     rec = Reconstruction.objects.filter(job=job).first()
     corrected = rec is not None and bool(rec.landmarks or rec.landmark_history)
     if corrected and not Member.objects.filter(user=request.user, clinic=member,

@@ -605,17 +605,22 @@ def run_comparison(job_id: int) -> str:
 LANDMARKS_RUN_START = 10  # one step (indices and pictures, then the comparisons are queued)
 
 
-def request_landmark_analysis(rec: Reconstruction) -> Job:
-    """The job computing ``rec``'s indices and pictures again from its (just corrected) landmarks, sent.
-
-    Called after the landmarks were committed (the pages run in autocommit). A job of the same torso still
-    waiting is reused (two corrections in a row: the second's landmarks are what it reads). Without a
-    broker the job runs here, before this returns.
-    """
+def queue_landmark_analysis(rec: Reconstruction) -> Job:
+    """The row of the job that will compute ``rec``'s indices and pictures again from its corrected landmarks,
+    made in the caller's transaction: the one that stores the landmarks, so that the two commit together and a
+    correction never stands without its job. Hand it to :func:`send_now` once committed (a queued job that
+    never reaches the broker is sent by the sweeper). A job of the same torso still waiting is reused (two
+    corrections in a row: the second's landmarks are what it reads)."""
     job = Job.objects.filter(kind=Job.LANDMARKS, later=rec, state=Job.QUEUED).first()
     if job is None:
         job = Job.objects.create(kind=Job.LANDMARKS, rig_id=rec.session.rig_id, session_id=rec.session_id,
                                  later=rec, stage="waiting for a worker")
+    return job
+
+
+def send_now(job: Job) -> Job:
+    """A committed queued ``job`` handed to the broker (without one, run here before this returns); the job as
+    it stands after that."""
     send(_entry_task(job), job.pk)
     job.refresh_from_db()
     return job
@@ -639,6 +644,7 @@ def run_landmark_analysis(job_id: int) -> str:
         return "not claimed"
     job = Job.objects.select_related("later__session").get(pk=job_id)
     rec = job.later
+    read = json.dumps([rec.landmarks, rec.landmark_history], sort_keys=True)  # the correction this job applies
     try:
         with heartbeat(Job.objects.filter(pk=job_id, claimed=claim)), transaction.atomic():
             analyse_reconstruction(rec)
@@ -646,15 +652,27 @@ def run_landmark_analysis(job_id: int) -> str:
     except TRANSIENT:
         Job.objects.filter(pk=job_id, claimed=claim).update(state=Job.QUEUED, claimed=None, lease_until=None)
         raise
-    except Exception as exc:
+    except (ValueError, FormatError) as exc:
+        # the analysis refused these landmarks: the correction is undone, unless another one came meanwhile
+        # (its own job reads it)
         log.exception("torso %s: indices from the corrected landmarks %s failed", rec.pk, rec.landmarks)
-        history = list(rec.landmark_history or [])
-        if history:
-            last = history.pop()
-            Reconstruction.objects.filter(pk=rec.pk).update(landmarks=last.get("landmarks"),
-                                                            landmark_history=history)
-        fail(job_id, "the indices could not be computed from the corrected landmarks, so the correction was "
-                     f"undone: {_engine_error(exc)}", claimed=claim)
+        with transaction.atomic():
+            now = Reconstruction.objects.select_for_update().get(pk=rec.pk)
+            history = list(now.landmark_history or [])
+            undone = bool(history) and json.dumps([now.landmarks, now.landmark_history], sort_keys=True) == read
+            if undone:
+                last = history.pop()
+                Reconstruction.objects.filter(pk=rec.pk).update(landmarks=last.get("landmarks"),
+                                                                landmark_history=history)
+        fail(job_id, "the indices could not be computed from the corrected landmarks, so "
+                     + ("the correction was undone" if undone else "they were not used")
+                     + f": {_engine_error(exc)}", claimed=claim)
+        return "failed"
+    except Exception as exc:
+        # a fault of the server (a full disk, a time limit), not of the landmarks: the correction is kept, and
+        # the job can be run again once the fault is mended
+        fail(job_id, "the indices could not be computed again (a fault of the server, not of the landmarks; the "
+                     f"correction is kept: run this job again): {_engine_error(exc)}", claimed=claim)
         return "failed"
     set_progress(job_id, "comparisons queued", 90)
     for earlier, later in pairs:

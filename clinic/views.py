@@ -673,7 +673,8 @@ def _apply_landmarks(request, v, rec, landmarks, history):
         rec.landmarks = landmarks
         rec.landmark_history = history
         rec.save(update_fields=["landmarks", "landmark_history"])
-    job = pipeline.request_landmark_analysis(rec)  # committed: a worker may take it
+        job = pipeline.queue_landmark_analysis(rec)  # committed with the landmarks
+    job = pipeline.send_now(job)
     if job.state == Job.SUCCEEDED:
         messages.info(request, "The indices and pictures were computed again from the corrected landmarks; the "
                                "comparisons with this scan are being computed again.")

@@ -31,5 +31,5 @@ def test_it_keeps_the_traceback_of_a_landmark_jobs_fault_off_the_visit_page(clie
     error_id = job.error.rsplit(" ", 1)[-1].rstrip(")")
     assert error_id in caplog.text and "Traceback" in caplog.text
     page = client.get(f"/visits/{visit.pk}/").content.decode()
-    assert "The last landmark correction was undone" in page
+    assert "The last landmark correction could not be applied" in page and "the correction is kept" in page
     assert "File &quot;" not in page and "pipeline.py" not in page
