@@ -270,6 +270,8 @@ class Job(models.Model):
     percent = models.PositiveSmallIntegerField(default=0)
     error = models.TextField(blank=True)
     attempt = models.PositiveIntegerField(default=0, help_text="Runs started (re-runs included)")
+    takeovers = models.PositiveSmallIntegerField(
+        default=0, help_text="Times a step was sent again because its worker stopped holding it (since the last run)")
     claimed = models.DateTimeField(null=True, blank=True, help_text="When the step now running claimed the job")
     lease_until = models.DateTimeField(
         null=True, blank=True,
@@ -309,6 +311,7 @@ class ArmTask(models.Model):
     state = models.CharField(max_length=16, choices=Job.STATES, default=Job.QUEUED)
     claimed = models.DateTimeField(null=True, blank=True)
     lease_until = models.DateTimeField(null=True, blank=True, help_text="As the job's: the arm's claim holds until then")
+    takeovers = models.PositiveSmallIntegerField(default=0, help_text="As the job's, for this arm")
     dispatched = models.DateTimeField(default=timezone.now, help_text="When the arm was last handed to the broker")
     surface = models.FileField(upload_to=result_path, max_length=500, blank=True)
     report = models.JSONField(null=True, blank=True)

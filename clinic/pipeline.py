@@ -176,7 +176,7 @@ def rerun(job: Job) -> Job:
         rerunnable = [Job.FAILED] if job.kind == Job.CALIBRATION else [Job.FAILED, Job.SUCCEEDED]
         n = Job.objects.filter(Q(pk=job.pk) & (Q(state__in=rerunnable) | _abandoned())).update(
             state=Job.QUEUED, stage="", percent=0, error="", finished=None, claimed=None, lease_until=None,
-            dispatched=_now())
+            dispatched=_now(), takeovers=0)
         if not n:
             job.refresh_from_db()
             if job.state == Job.RUNNING:
@@ -745,8 +745,24 @@ def redispatch_stalled(older_than=None, now=None) -> list:
     sent = []
 
     def resend(rows, row, task, *args):
+        # a lapsed claim's first sending since it lapsed is a takeover (its worker died); a step taken over
+        # JOB_MAX_TAKEOVERS times that dies again fails instead: a capture that kills its worker every time
+        # would otherwise stay "running" for ever, and nobody would be told
+        takeover = row.lease_until is not None and row.lease_until < now and row.dispatched < row.lease_until
+        if takeover and row.takeovers >= settings.JOB_MAX_TAKEOVERS:
+            why = (f"its worker stopped {row.takeovers + 1} times while running it (killed, e.g. out of memory on "
+                   "this capture), so it was not sent again; the capture is kept: re-run the job once the cause is "
+                   "mended")
+            # the same election as below: one sweeper gives up
+            if rows.filter(pk=row.pk, dispatched=row.dispatched, state=Job.RUNNING).update(
+                    state=Job.FAILED, error=why, lease_until=None, dispatched=now):
+                log.error("giving up %s%r: %s", task.name, args, why)
+                if rows.model is Job:
+                    Job.objects.filter(pk=row.pk).update(finished=now)
+            return
+        extra = {"takeovers": F("takeovers") + 1} if takeover else {}
         # the conditional update elects one sweeper per row and period (several beats are harmless too)
-        if rows.filter(pk=row.pk, dispatched=row.dispatched).update(dispatched=now):
+        if rows.filter(pk=row.pk, dispatched=row.dispatched).update(dispatched=now, **extra):
             log.warning("re-dispatching %s%r (queued since %s, lease %s)", task.name, args, row.dispatched,
                         row.lease_until)
             if send(task, *args):

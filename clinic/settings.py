@@ -276,6 +276,9 @@ CELERY_ACCEPT_CONTENT = ["json"]
 # replaced within JOB_LEASE_SECONDS + JOB_SWEEP_SECONDS (once a worker slot is free).
 JOB_LEASE_SECONDS = envint("JOB_LEASE_SECONDS", 120)
 JOB_REDISPATCH_SECONDS = envint("JOB_REDISPATCH_SECONDS", 60)
+# a step whose worker stopped holding it this many times (killed each time: out of memory on this capture,
+# say) is not sent again: its job (or arm) fails saying so, and its capture stays for a re-run
+JOB_MAX_TAKEOVERS = envint("JOB_MAX_TAKEOVERS", 3)
 JOB_SWEEP_SECONDS = envint("JOB_SWEEP_SECONDS", 30)
 
 # Scheduled work (Celery beat with django-celery-beat's database scheduler):
