@@ -848,20 +848,15 @@ def rerun_job(request, job_id: str):
 
     A job stuck running whose worker died (every lease lapsed) is re-run too;
     409 while a worker holds it. A queued job is sent to the broker again. A
-    finished scan whose landmarks a clinician corrected is re-run only by an
-    administrator (403 for a technician): its torso is made anew, without them.
+    reconstruction that succeeded is not re-run (409): its torso, the
+    landmarks a clinician corrected on it and its comparisons would be deleted
+    before a new torso exists. A landmark correction's job may be re-run by
+    its clinicians too.
     """
     job = get_object_or_404(_jobs_for(request), uid=_uuid(job_id))
     # a landmark correction's job is the clinician's too (a server fault left the correction kept, not applied)
-    member = member_clinic(request, job.clinic_id, RERUN_LANDMARKS if job.kind == Job.LANDMARKS else
-                           (Member.ADMINISTRATOR, Member.TECHNICIAN))
-    rec = Reconstruction.objects.filter(job=job).first()
-    corrected = rec is not None and bool(rec.landmarks or rec.landmark_history)
-    if corrected and not Member.objects.filter(user=request.user, clinic=member,
-                                               role=Member.ADMINISTRATOR).exists():
-        # re-running makes the torso anew: the landmarks a clinician corrected on it would be gone
-        raise ApiError(403, "a clinician corrected this scan's landmarks, and re-running it would discard the "
-                            "corrections; ask a clinic administrator")
+    member_clinic(request, job.clinic_id, RERUN_LANDMARKS if job.kind == Job.LANDMARKS else
+                  (Member.ADMINISTRATOR, Member.TECHNICIAN))
     try:
         job = pipeline.rerun(job)
     except pipeline.JobError as exc:

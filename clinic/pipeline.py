@@ -172,8 +172,11 @@ def rerun(job: Job) -> Job:
         send(_entry_task(job), job.pk)
         return job
     with transaction.atomic():
-        # a calibration that succeeded is history (stability checks refer to it): calibrate anew instead
-        rerunnable = [Job.FAILED] if job.kind == Job.CALIBRATION else [Job.FAILED, Job.SUCCEEDED]
+        # a calibration that succeeded is history (stability checks refer to it): calibrate anew instead. A
+        # reconstruction that succeeded is the patient's torso: re-running it would delete it (and its landmark
+        # corrections and comparisons) before a new one exists, and a run that then failed would leave none
+        rerunnable = [Job.FAILED] if job.kind in (Job.CALIBRATION, Job.RECONSTRUCTION) else [Job.FAILED,
+                                                                                             Job.SUCCEEDED]
         n = Job.objects.filter(Q(pk=job.pk) & (Q(state__in=rerunnable) | _abandoned())).update(
             state=Job.QUEUED, stage="", percent=0, error="", finished=None, claimed=None, lease_until=None,
             dispatched=_now(), takeovers=0)
