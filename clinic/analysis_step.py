@@ -107,6 +107,7 @@ def compare_reconstructions(earlier: Reconstruction, later: Reconstruction) -> C
     existing = Comparison.objects.filter(earlier=earlier, later=later).first()
     if existing is not None:
         return existing
+    read = _as_read(earlier, later)
     mdc = clinic_mdc(later.session.rig.clinic)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -137,12 +138,30 @@ def compare_reconstructions(earlier: Reconstruction, later: Reconstruction) -> C
         comparison.pictures = {Path(p).stem: _store(folder, Path(p)) for p in _paths(pics)}
         try:
             with transaction.atomic():
+                # a torso whose landmarks or indices changed meanwhile (a clinician's correction): this result is
+                # stale, and the correction's job queues the pair again
+                now = {r.pk: r for r in Reconstruction.objects.select_for_update().filter(pk__in=[earlier.pk,
+                                                                                                later.pk])}
+                if len(now) < 2 or _as_read(now[earlier.pk], now[later.pk]) != read:
+                    raise StaleComparison(f"the landmarks of scan {earlier.pk} or {later.pk} were corrected while "
+                                          "they were compared; the comparison is made again from them")
                 comparison.save()
-        except IntegrityError:  # the pair was stored meanwhile (a page's job and a registration at once)
+        except (IntegrityError, StaleComparison) as exc:
             for name in [comparison.deformation.name, *comparison.pictures.values()]:
                 default_storage.delete(name)
-            return Comparison.objects.get(earlier=earlier, later=later)
+            if isinstance(exc, StaleComparison):
+                raise
+            return Comparison.objects.get(earlier=earlier, later=later)  # stored meanwhile by another job
     return comparison
+
+
+class StaleComparison(Exception):
+    """A comparison finished after one of its torsos' landmarks were corrected: not stored."""
+
+
+def _as_read(earlier: Reconstruction, later: Reconstruction) -> str:
+    """What a comparison of the two torsos rests on besides their files: their landmarks and indices."""
+    return json.dumps([[r.pk, r.landmarks, r.indices] for r in (earlier, later)], sort_keys=True, default=str)
 
 
 def _paths(pics) -> list:

@@ -539,10 +539,17 @@ def earlier_reconstructions(rec: Reconstruction):
 
 
 def compare_with_earlier(rec: Reconstruction) -> list:
-    """The later torso against every earlier visit's (the analysis step)."""
-    from .analysis_step import compare_reconstructions
+    """The later torso against every earlier visit's (the analysis step). A pair whose earlier torso's landmarks
+    were corrected while it was compared is left to that correction's job, which compares it again."""
+    from .analysis_step import StaleComparison, compare_reconstructions
 
-    return [compare_reconstructions(earlier, rec) for earlier in earlier_reconstructions(rec)]
+    out = []
+    for earlier in earlier_reconstructions(rec):
+        try:
+            out.append(compare_reconstructions(earlier, rec))
+        except StaleComparison as exc:
+            log.info("torso %s: %s", rec.pk, exc)
+    return out
 
 
 # --- a comparison asked for on its page ------------------------------------------------
@@ -577,7 +584,7 @@ def comparison_job_of(earlier: Reconstruction, later: Reconstruction):
 
 def run_comparison(job_id: int) -> str:
     """Register the later torso to the earlier one: the report, deformation map and its picture (once per pair)."""
-    from .analysis_step import compare_reconstructions
+    from .analysis_step import StaleComparison, compare_reconstructions
 
     claim = _now()
     if not Job.objects.filter(Q(pk=job_id, kind=Job.COMPARISON) & (Q(state=Job.QUEUED) | _lapsed())).update(
@@ -591,6 +598,10 @@ def run_comparison(job_id: int) -> str:
         with heartbeat(Job.objects.filter(pk=job_id, claimed=claim)):
             # a pair the registration compared meanwhile is not computed again (nor stored twice)
             compare_reconstructions(job.earlier, job.later)
+    except StaleComparison as exc:  # the correction's job has queued the pair again (this job row is gone)
+        log.info("comparison job %s: %s", job_id, exc)
+        fail(job_id, f"comparison: {exc}", claimed=claim)
+        return "stale"
     except TRANSIENT:
         Job.objects.filter(pk=job_id, claimed=claim).update(state=Job.QUEUED, claimed=None, lease_until=None)
         raise
@@ -651,7 +662,12 @@ def run_landmark_analysis(job_id: int) -> str:
     try:
         with heartbeat(Job.objects.filter(pk=job_id, claimed=claim)), transaction.atomic():
             analyse_reconstruction(rec)
-            pairs = forget_comparisons_of(rec)
+            # the comparisons resting on the torso go, and their new jobs' rows come, in one commit: a worker
+            # that dies after it cannot lose them (the sweeper sends a queued row)
+            again = [Job.objects.create(kind=Job.COMPARISON, rig_id=later.session.rig_id,
+                                        session_id=later.session_id, earlier=earlier, later=later,
+                                        stage="waiting for a worker")
+                     for earlier, later in forget_comparisons_of(rec)]
     except TRANSIENT:
         Job.objects.filter(pk=job_id, claimed=claim).update(state=Job.QUEUED, claimed=None, lease_until=None)
         raise
@@ -678,8 +694,8 @@ def run_landmark_analysis(job_id: int) -> str:
                      f"correction is kept: run this job again): {_engine_error(exc)}", claimed=claim)
         return "failed"
     set_progress(job_id, "comparisons queued", 90)
-    for earlier, later in pairs:
-        request_comparison(earlier, later)
+    for comparison in again:
+        send_now(comparison)
     if not Job.objects.filter(pk=job_id, state=Job.RUNNING, claimed=claim).update(
             state=Job.SUCCEEDED, stage="done", percent=100, finished=_now(), lease_until=None):
         return "claim lost"
@@ -807,6 +823,11 @@ def forget_comparisons_of(rec: Reconstruction) -> list:
         files += [c.deformation.name] if c.deformation else []
         files += list((c.pictures or {}).values())
         c.delete()
-    Job.objects.filter(kind=Job.COMPARISON).filter(Q(earlier=rec) | Q(later=rec)).delete()
+    jobs = Job.objects.filter(kind=Job.COMPARISON).filter(Q(earlier=rec) | Q(later=rec))
+    # a pair still being compared (from the landmarks before) is compared again too: its result will be stale
+    for j in jobs.filter(state__in=[Job.QUEUED, Job.RUNNING]).select_related("earlier", "later"):
+        if all((j.earlier_id, j.later_id) != (e.pk, lt.pk) for e, lt in pairs):
+            pairs.append((j.earlier, j.later))
+    jobs.delete()
     transaction.on_commit(lambda: [default_storage.delete(f) for f in files if f])
     return pairs
