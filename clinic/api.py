@@ -267,42 +267,38 @@ def _spool(stream, limit: int, what: str, status: int = 413):
 
     Counts what it reads, whatever the stream claimed (a zip member's declared size may lie). The server's own
     disk failing (full, say) is a 503: the rig keeps the capture and retries."""
-    tmp = None
-    digest, size = hashlib.sha256(), 0
     try:
         tmp = tempfile.NamedTemporaryFile(dir=settings.FILE_UPLOAD_TEMP_DIR, suffix=".part")
-        while True:
-            chunk = stream.read(CHUNK)  # a client that stops sending raises here: not the disk's fault
-            if not chunk:
-                break
-            size += len(chunk)
-            if size > limit:
-                tmp.close()
-                raise ApiError(status, f"{what} is larger than {limit} bytes")
-            digest.update(chunk)
-            try:
-                tmp.write(chunk)
-            except OSError as exc:
-                raise _DiskFailed(exc) from None
+    except OSError as exc:
+        raise _folder_failed(what, exc) from None
+    digest, size = hashlib.sha256(), 0
+    while True:
+        chunk = stream.read(CHUNK)  # a client that stops sending raises here: not the server's fault
+        if not chunk:
+            break
+        size += len(chunk)
+        if size > limit:
+            tmp.close()
+            raise ApiError(status, f"{what} is larger than {limit} bytes")
+        digest.update(chunk)
         try:
-            tmp.flush()
+            tmp.write(chunk)
         except OSError as exc:
-            raise _DiskFailed(exc) from None
-    except (_DiskFailed, OSError) as exc:
-        if isinstance(exc, OSError) and tmp is not None:  # the stream's error, not the folder's
             tmp.close()
-            raise
-        if tmp is not None:
-            tmp.close()
-        cause = exc.args[0] if isinstance(exc, _DiskFailed) else exc
-        log.error("the upload folder failed taking %s: %s", what, cause)
-        raise Unavailable(f"the server could not take {what} ({cause.strerror or type(cause).__name__})") from None
+            raise _folder_failed(what, exc) from None
+    try:
+        tmp.flush()
+    except OSError as exc:
+        tmp.close()
+        raise _folder_failed(what, exc) from None
     tmp.seek(0)
     return tmp, digest.hexdigest(), size
 
 
-class _DiskFailed(Exception):
-    """The upload folder failed (``args[0]``: the OSError), as opposed to the client's stream."""
+def _folder_failed(what: str, exc: OSError) -> "Unavailable":
+    """The upload folder failed taking ``what`` (full, say): logged, and a 503 for the rig to retry."""
+    log.error("the upload folder failed taking %s: %s", what, exc)
+    return Unavailable(f"the server could not take {what} ({exc.strerror or type(exc).__name__})")
 
 
 def _check_image(tmp, rig, image: CaptureImage, where: str):

@@ -14,10 +14,10 @@ the broker, or whose worker died (its lease ran out).
 
 import json
 import logging
+import secrets
 import shutil
 import tempfile
 import threading
-import secrets
 from datetime import timedelta
 from pathlib import Path
 
@@ -117,7 +117,8 @@ def _engine_error(exc: Exception) -> str:
         return str(exc)
     error_id = secrets.token_hex(4)
     log.error("internal fault %s in a job", error_id, exc_info=exc)
-    return f"{type(exc).__name__}: {str(exc)[:300]} (an internal fault; its traceback is in the server's log as {error_id})"
+    return (f"{type(exc).__name__}: {str(exc)[:300]} (an internal fault; its traceback is in the server's log as "
+            f"{error_id})")
 
 
 # --- dispatch ------------------------------------------------------------------
