@@ -17,6 +17,7 @@ import contextlib
 import hashlib
 import json
 import logging
+import os
 import secrets
 import struct
 import tempfile
@@ -499,12 +500,34 @@ def finalize_session(request, session_id: str, partial: bool = False):
 
 
 def _store(name: str, fileobj) -> str:
-    """Save to the storage; a failing storage is a 503 (retry), not a 500."""
+    """Save to the storage, on disk before any row names it; a failing storage is a 503 (retry), not a 500."""
     try:
-        return default_storage.save(name, File(fileobj))
+        stored = default_storage.save(name, File(fileobj))
+        _to_disk(stored)
+        return stored
     except Exception as exc:
         log.exception("storage failed saving %s", name)
         raise Unavailable(f"the file store failed ({type(exc).__name__})") from None
+
+
+def _to_disk(name: str):
+    """A file of a local storage, and its folder's entry, flushed to the disk: after a power cut a row committed
+    since names a whole image (the storage writes the final name directly; a repeated upload answers "already"
+    from the row). A storage without local paths (an object store) keeps its own promise."""
+    try:
+        path = default_storage.path(name)
+    except NotImplementedError:
+        return
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    folder = os.open(os.path.dirname(path), os.O_RDONLY)
+    try:
+        os.fsync(folder)
+    finally:
+        os.close(folder)
 
 
 def _stored(name: str) -> bool:
