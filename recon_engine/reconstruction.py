@@ -30,7 +30,7 @@ from .surface import (PointSurface, flank_faces, in_patches, local_quadrics, mak
                       off_surface, off_surface_again, small_components, subset, window_curvature_bias,
                       window_obliquity_bias)
 from .matching import reason_counts
-from .tracking import TrackingConfig, track_images
+from .tracking import TrackingConfig, track_images, track_windows
 
 ROI_KEY = "roi_polygons"  # capture.json: {"A1": [[x, y], ...]} user-drawn regions (px)
 
@@ -212,7 +212,9 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     t3 = time.perf_counter()
     surface, reason, sigma = surface_from_intersection(res, cams, cfg)
     keep = reason == ""
-    surface, shift = refine_on_local_quadrics(surface, cams, cfg)
+    # the window each kept point was matched with (its tracks' pairs: out-of-focus pairs match with larger ones)
+    window = track_windows(tr["tracks"], tr["blur_px"], cfg.tracking.matching)[keep]
+    surface, shift = refine_on_local_quadrics(surface, cams, cfg, window_px=window)
     t4 = time.perf_counter()
     dropped = reason_counts(reason[~keep])
     rays = res["rays"][keep]
@@ -233,7 +235,8 @@ def reconstruct_arm(capture: Capture, rig: Rig, calibration: Calibration, arm_id
     return surface, report
 
 
-def refine_on_local_quadrics(surface: PointSurface, cams: list, cfg: ReconstructionConfig) -> tuple:
+def refine_on_local_quadrics(surface: PointSurface, cams: list, cfg: ReconstructionConfig,
+                             window_px=None) -> tuple:
     """The surface's points moved along their normals onto their local quadric and out of the matching window's
     curvature bias (``cfg``'s ``onto_local_quadric``, ``window_curvature_correction``; see
     :func:`recon_engine.surface.local_quadrics` and :func:`recon_engine.surface.window_curvature_bias`).
@@ -247,9 +250,10 @@ def refine_on_local_quadrics(surface: PointSurface, cams: list, cfg: Reconstruct
     patches, normals and per-point data stay. Returns ``(surface, shift)``, ``shift`` (N,) in mm along the
     normals; ``surface`` is not modified.
 
-    The window is the in-focus least-squares window (``lsm_window``) for every point: the points that growing
-    (``grow_window``, 11 px) or an out-of-focus pair (``blurred_lsm_window``, 15 px) matched carry a larger bias and
-    are under-corrected (the points do not say which window matched them).
+    ``window_px`` (px, a number or one per point): the least-squares window each point was matched with
+    (:func:`recon_engine.tracking.track_windows`: an out-of-focus pair's ``blurred_lsm_window``); by default the
+    in-focus ``lsm_window`` for every point. The points that growing (``grow_window``, 11 px) matched carry a
+    larger bias and are under-corrected (the tracks do not say which stage matched them).
     """
     n = len(surface.points)
     if cfg.local_quadric_neighbours <= 0 or n < 6 or not (cfg.onto_local_quadric or cfg.window_curvature_correction
@@ -268,7 +272,8 @@ def refine_on_local_quadrics(surface: PointSurface, cams: list, cfg: Reconstruct
         shift += onto[:, 0]
     if cfg.window_curvature_correction:
         m = cfg.tracking.matching
-        shift -= window_curvature_bias(q, surface.points, cams, m.lsm_window or m.window)
+        shift -= window_curvature_bias(q, surface.points, cams, m.lsm_window or m.window if window_px is None
+                                       else window_px)
     if cfg.obliquity_bias:
         shift -= window_obliquity_bias(surface.points, surface.normals, cams, cfg.obliquity_bias)
     limit = 3 * np.minimum(sigma, np.median(sigma))

@@ -170,6 +170,28 @@ def track_images(images: list, cameras: list, depth_bounds, cfg: TrackingConfig 
     return {"tracks": tracks, "ncc": corr, "pairs": pairs, "blur_px": np.array(blur)}
 
 
+def track_windows(tracks: np.ndarray, blur_px, cfg: MatchingConfig) -> np.ndarray:
+    """Each track's least-squares window (px): the root mean square of the windows of the image pairs that matched
+    it (``focus_adapted``: an out-of-focus pair matches with ``blurred_lsm_window``).
+
+    ``tracks`` (T, K, 2) as :func:`track_images` returns them, ``blur_px`` (K,) its images' blur estimates. A
+    track's pairs are its consecutive observations, one image apart or two (a skip pair). Returns (T,) px.
+    """
+    seen = np.isfinite(np.asarray(tracks)[:, :, 0])
+    K = seen.shape[1]
+    total, count = np.zeros(len(seen)), np.zeros(len(seen))
+    for j in range(K - 1):
+        for k in (j + 1, j + 2):
+            if k >= K:
+                continue
+            used = seen[:, j] & seen[:, k] & ((k == j + 1) | ~seen[:, j + 1])
+            m = focus_adapted(cfg, max(float(blur_px[j]), float(blur_px[k])))
+            total[used] += float(m.lsm_window or m.window) ** 2
+            count[used] += 1
+    fallback = float(cfg.lsm_window or cfg.window)
+    return np.where(count > 0, np.sqrt(total / np.maximum(count, 1)), fallback)
+
+
 def fill_cell_px(pair, depth_bounds, roi: np.ndarray, n_features: int, spacing_mm: float) -> int:
     """The cell (px) of the points that fill the gaps between the features, or 0 where none are needed.
 
