@@ -570,13 +570,18 @@ def request_comparison(earlier: Reconstruction, later: Reconstruction) -> Job:
         return job
     try:
         with transaction.atomic():
-            job = Job.objects.create(kind=Job.COMPARISON, rig_id=later.session.rig_id, session_id=later.session_id,
-                                     earlier=earlier, later=later, stage="waiting for a worker")
+            job = _comparison_job_row(earlier, later)
     except IntegrityError:
         return Job.objects.get(kind=Job.COMPARISON, earlier=earlier, later=later)
     send(_entry_task(job), job.pk)
     job.refresh_from_db()
     return job
+
+
+def _comparison_job_row(earlier: Reconstruction, later: Reconstruction) -> Job:
+    """A queued comparison job's row (not sent): the session is the later torso's, so the job is its patient's."""
+    return Job.objects.create(kind=Job.COMPARISON, rig_id=later.session.rig_id, session_id=later.session_id,
+                              earlier=earlier, later=later, stage="waiting for a worker")
 
 
 def comparison_job_of(earlier: Reconstruction, later: Reconstruction):
@@ -665,10 +670,7 @@ def run_landmark_analysis(job_id: int) -> str:
             analyse_reconstruction(rec)
             # the comparisons resting on the torso go, and their new jobs' rows come, in one commit: a worker
             # that dies after it cannot lose them (the sweeper sends a queued row)
-            again = [Job.objects.create(kind=Job.COMPARISON, rig_id=later.session.rig_id,
-                                        session_id=later.session_id, earlier=earlier, later=later,
-                                        stage="waiting for a worker")
-                     for earlier, later in forget_comparisons_of(rec)]
+            again = [_comparison_job_row(earlier, later) for earlier, later in forget_comparisons_of(rec)]
     except TRANSIENT:
         Job.objects.filter(pk=job_id, claimed=claim).update(state=Job.QUEUED, claimed=None, lease_until=None)
         raise
@@ -773,12 +775,11 @@ def redispatch_stalled(older_than=None, now=None) -> list:
             why = (f"its worker stopped {row.takeovers + 1} times while running it (killed, e.g. out of memory on "
                    "this capture), so it was not sent again; the capture is kept: re-run the job once the cause is "
                    "mended")
+            failed = {"state": Job.FAILED, "error": why, "lease_until": None, "dispatched": now,
+                      **({"finished": now} if rows.model is Job else {})}  # an arm row has no finish time
             # the same election as below: one sweeper gives up
-            if rows.filter(pk=row.pk, dispatched=row.dispatched, state=Job.RUNNING).update(
-                    state=Job.FAILED, error=why, lease_until=None, dispatched=now):
+            if rows.filter(pk=row.pk, dispatched=row.dispatched, state=Job.RUNNING).update(**failed):
                 log.error("giving up %s%r: %s", task.name, args, why)
-                if rows.model is Job:
-                    Job.objects.filter(pk=row.pk).update(finished=now)
             return
         extra = {"takeovers": F("takeovers") + 1} if takeover else {}
         # the conditional update elects one sweeper per row and period (several beats are harmless too)

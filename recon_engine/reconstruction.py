@@ -272,8 +272,8 @@ def refine_on_local_quadrics(surface: PointSurface, cams: list, cfg: Reconstruct
         shift += onto[:, 0]
     if cfg.window_curvature_correction:
         m = cfg.tracking.matching
-        shift -= window_curvature_bias(q, surface.points, cams, m.lsm_window or m.window if window_px is None
-                                       else window_px)
+        window = (m.lsm_window or m.window) if window_px is None else window_px
+        shift -= window_curvature_bias(q, surface.points, cams, window)
     if cfg.obliquity_bias:
         shift -= window_obliquity_bias(surface.points, surface.normals, cams, cfg.obliquity_bias)
     limit = 3 * np.minimum(sigma, np.median(sigma))

@@ -257,8 +257,8 @@ def window_curvature_bias(quadrics: np.ndarray, points: np.ndarray, cameras, win
 
     A correlation or least-squares window matches the skin's mean height over the skin it covers, not its
     height at the centre: with the skin ``z = c3 x² + c4 xy + c5 y²`` about the point, a square window of
-    ``window_px`` pixels (a number, or one per point) covering ``g`` mm per pixel measures ``(c3 + c5) · s²`` with ``s² = window_px² / 12 ·
-    g²`` (a uniform window's second moment), i.e. points lie inside skin that bulges towards the cameras and
+    ``window_px`` pixels (a number, or one per point) covering ``g`` mm per pixel measures ``(c3 + c5) · s²`` with
+    ``s² = window_px² / 12 · g²`` (a uniform window's second moment), i.e. points lie inside skin that bulges towards the cameras and
     outside a hollow. ``g`` is the point's distance to the cameras' mean centre over their mean principal
     distance (px). Cheaper rigs see more skin per pixel: 1000 x 667 px, about 1 mm per pixel, a 9 px window
     and the trunk's 50-200 mm radii put the points 0.03-0.15 mm inside the skin (seed 41, arm A, true
