@@ -729,21 +729,25 @@ def comparison(request, patient_id):
     """Any two scans of the patient (two visits, or a same-day re-scan): the verdict, then the deformation map,
     per-region changes and every index's change against the scanner's noise.
 
-    A pair not compared yet is compared by a job (registering two torsos takes a while): the page shows its
-    progress and refreshes itself until the result is there. A failed job can be tried again (POST)."""
+    A pair not compared yet is compared by a job (registering two torsos takes a while), started by a POST (the
+    patient page's form, the page's own button): a GET only shows what there is, so a followed link, a prefetch
+    or a reload starts nothing. The page shows the job's progress and refreshes itself until the result is there.
+    A failed job can be tried again (POST)."""
     p = get_object_or_404(_patients(request.user), pk=patient_id)
     back = reverse("patient", args=[p.pk])
     scans = scans_of(p)
     order = {r.pk: k for k, r in enumerate(scans)}
     by_pk = {r.pk: r for r in scans}
+    # a form's POST carries its choice in the body; the page's own buttons post to its address (the query)
+    asked = request.POST if "earlier_scan" in request.POST or "earlier" in request.POST else request.GET
     try:
-        if "earlier_scan" in request.GET or "later_scan" in request.GET:
-            earlier, later = (by_pk.get(int(request.GET.get(f, ""))) for f in ("earlier_scan", "later_scan"))
+        if "earlier_scan" in asked or "later_scan" in asked:
+            earlier, later = (by_pk.get(int(asked.get(f, ""))) for f in ("earlier_scan", "later_scan"))
             if earlier is None or later is None:
                 raise Http404("no such scan of this patient")
         else:  # two visits: each one's scan shown to clinicians; one visit twice: its first scan and its latest
-            earlier_v = get_object_or_404(p.visits, pk=int(request.GET.get("earlier", "")))
-            later_v = get_object_or_404(p.visits, pk=int(request.GET.get("later", "")))
+            earlier_v = get_object_or_404(p.visits, pk=int(asked.get("earlier", "")))
+            later_v = get_object_or_404(p.visits, pk=int(asked.get("later", "")))
             if earlier_v == later_v:
                 same = [r for r in scans if r.session.visit_id == earlier_v.pk]
                 earlier, later = (same[0], same[-1]) if same else (None, None)
@@ -761,26 +765,30 @@ def comparison(request, patient_id):
     if order[later.pk] < order[earlier.pk]:
         earlier, later = later, earlier
     comp = Comparison.objects.filter(earlier=earlier, later=later).first()
-    if comp is None:
-        job = _comparison_job(request, earlier, later)
-        if request.method == "POST":  # back to the page's address, so that its refresh does not post again
-            return redirect(request.get_full_path())
-        comp = Comparison.objects.filter(earlier=earlier, later=later).first()
+    if request.method == "POST":
         if comp is None:
-            return render(request, "clinic/comparison_progress.html", {
-                **patient_context(p), "job": job, "earlier": earlier, "later": later,
-                "repeat": earlier.session.visit_id == later.session.visit_id,
-                "waited": int((timezone.now() - job.dispatched).total_seconds()),
-                "error": _job_error_words(job) if job.state == Job.FAILED else None})
+            _comparison_job(earlier, later)
+        # to the pair's own address, so that the page's refresh (and a reload) does not post again
+        return redirect(f"{reverse('comparison', args=[p.pk])}?earlier_scan={earlier.pk}&later_scan={later.pk}")
+    if comp is None:
+        job = pipeline.comparison_job_of(earlier, later)
+        gone = job is not None and job.state == Job.SUCCEEDED  # its result was removed since: compare again
+        return render(request, "clinic/comparison_progress.html", {
+            **patient_context(p), "job": None if gone else job, "earlier": earlier, "later": later,
+            "repeat": earlier.session.visit_id == later.session.visit_id,
+            "waited": int((timezone.now() - job.dispatched).total_seconds()) if job and not gone else None,
+            "error": _job_error_words(job) if job and job.state == Job.FAILED else None})
     return _comparison_page(request, p, earlier, later, comp, scans)
 
 
-def _comparison_job(request, earlier, later) -> Job:
-    """The pair's comparison job, made and sent if there is none. A failed one is queued again when the page
-    asks (a POST, from its "Try again" button); a succeeded one whose result is gone, at once."""
-    job = pipeline.request_comparison(earlier, later)
+def _comparison_job(earlier, later) -> Job:
+    """The pair's comparison job (asked for by a POST), made and sent if there is none; a failed one, or a
+    succeeded one whose result is gone, queued again."""
+    job = pipeline.comparison_job_of(earlier, later)
+    if job is None:  # a new one (without a broker it has run, and may have failed, by now: shown as such)
+        return pipeline.request_comparison(earlier, later)
     gone = job.state == Job.SUCCEEDED and not Comparison.objects.filter(earlier=earlier, later=later).exists()
-    if gone or (job.state == Job.FAILED and request.method == "POST"):
+    if gone or job.state == Job.FAILED:
         try:
             job = pipeline.rerun(job)
         except pipeline.JobError:  # another request re-queued it first: show that one's progress

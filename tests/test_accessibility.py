@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_browser_comparison import CHROMIUM, chromium_or_skip, patient_with_two_visits  # noqa: F401
+from tests.test_browser_comparison import CHROMIUM, chromium_or_skip, compared, patient_with_two_visits  # noqa: F401
 
 AXE = Path(__file__).resolve().parent / "vendor" / "axe-core" / "axe.min.js"
 WIDTHS = (1280, 390)
@@ -61,6 +61,7 @@ def test_no_page_has_a_serious_accessibility_violation(live_server, patient_with
     settings.DEBUG = False  # the friendly 404 and 403 pages, as in production (Django's technical pages otherwise)
     p = patient_with_two_visits
     first, second = p.visits.all()
+    compared(p)
     base = live_server.url
     clinician_pages = {
         "worklist": "/", "patient list": "/?q=Robin", "patient history": f"/patients/{p.pk}/",

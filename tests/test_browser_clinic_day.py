@@ -124,7 +124,7 @@ def test_a_clinician_goes_through_the_clinic_day_at_both_widths(live_server, pat
             # the same-day re-scan, from the visit page
             page.goto(f"{base}/visits/{today.pk}/")
             with page.expect_navigation(timeout=300_000):
-                page.get_by_role("link", name="Compare this visit's 2 scans").click(timeout=300_000)
+                page.get_by_role("button", name="Compare this visit's 2 scans").click(timeout=300_000)
             page.wait_for_selector("#deformation", timeout=300_000)
             assert "re-scan" in page.locator("h1").first.inner_text().lower()
             step("05-same-day-rescan")

@@ -65,6 +65,17 @@ def patient_with_two_visits(clinic, charlie, monkeypatch):
     return patient
 
 
+def compared(patient):
+    """The patient's two visits compared, as the comparison page's POST asks (jobs run in-process here): the pages
+    that list the comparison's then show it, not its "compare these scans" button."""
+    from clinic import pipeline
+    from clinic.models import Comparison, Reconstruction
+
+    first, second = Reconstruction.objects.filter(session__visit__patient=patient).order_by("session__visit__date")
+    pipeline.request_comparison(first, second)
+    return Comparison.objects.get(earlier=first, later=second)
+
+
 @pytest.mark.django_db(transaction=True)
 def test_a_clinician_opens_a_comparison_and_its_deformation_map_loads(live_server, patient_with_two_visits):
     chromium_or_skip()
@@ -83,8 +94,8 @@ def test_a_clinician_opens_a_comparison_and_its_deformation_map_loads(live_serve
         page.click("text=Search")
         page.click("text=Robin Browser")
         assert page.locator("h1").inner_text().startswith("Robin Browser")
-        # the comparison is computed by a job when first opened (registration and pictures): in the embedded
-        # default it runs within the request, elsewhere the page shows its progress until the result is there
+        # the comparison (registration and pictures) is computed by a job that the form's POST starts: in the
+        # embedded default it runs within the request, elsewhere the page shows its progress until the result is there
         with page.expect_navigation(timeout=300_000):
             page.click("button:has-text('Compare')", no_wait_after=True)
         page.wait_for_selector("#deformation", timeout=300_000)

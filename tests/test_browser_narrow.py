@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_browser_comparison import CHROMIUM, chromium_or_skip, patient_with_two_visits  # noqa: F401
+from tests.test_browser_comparison import CHROMIUM, chromium_or_skip, compared, patient_with_two_visits  # noqa: F401
 
 
 @pytest.mark.django_db(transaction=True)
@@ -19,6 +19,7 @@ def test_no_page_scrolls_sideways_at_390_px(live_server, patient_with_two_visits
 
     p = patient_with_two_visits
     first, second = p.visits.all()
+    compared(p)
     out = Path(__file__).resolve().parent.parent / "docs" / "screenshots" if os.environ.get("SAVE_SCREENSHOTS") \
         else tmp_path
     out.mkdir(parents=True, exist_ok=True)

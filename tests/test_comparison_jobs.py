@@ -87,7 +87,15 @@ def test_the_page_queues_a_job_shows_its_progress_then_the_result(client, charli
     monkeypatch.setattr(pipeline, "send", lambda task, *args: sent.append((task.name, *args)) or True)
     client.force_login(charlie)
 
+    # a GET (a followed link, a prefetch) starts nothing: the page offers to compare
     r = client.get(_url(patient, earlier, later))
+    html = r.content.decode()
+    assert r.status_code == 200 and "have not been compared yet" in html and 'http-equiv="refresh"' not in html
+    assert not Job.objects.filter(kind=Job.COMPARISON).exists() and sent == []
+    # the patient page's form posts the two scans: the job is made, and the answer leads to the pair's page
+    r = client.post(f"/patients/{patient.pk}/compare/", {"earlier_scan": earlier.pk, "later_scan": later.pk})
+    assert r.status_code == 302 and r["Location"] == _url(patient, earlier, later)
+    r = client.get(r["Location"])
     assert r.status_code == 200
     html = r.content.decode()
     job = Job.objects.get(kind=Job.COMPARISON)
@@ -125,7 +133,9 @@ def test_a_failed_comparison_says_why_and_can_be_tried_again(client, charlie, tw
     client.force_login(charlie)
     monkeypatch.setattr(analysis.compare, "compare_torsos",
                         lambda *a, **kw: (_ for _ in ()).throw(ValueError("the torsos barely overlap")))
-    r = client.get(_url(patient, earlier, later))  # eager: the job runs in-process, and fails
+    r = client.post(_url(patient, earlier, later))  # eager: the job runs in-process, and fails
+    assert r.status_code == 302
+    r = client.get(r["Location"])
     html = r.content.decode()
     assert r.status_code == 200 and "The torsos barely overlap" in html and "Try again" in html
     assert 'http-equiv="refresh"' not in html  # nothing to wait for
@@ -189,10 +199,10 @@ def test_the_same_comparison_asked_twice_at_once_makes_one_job_and_one_result(ch
     def ask(k):
         c = Client()
         c.force_login(charlie)
-        return c.get(_url(patient, earlier, later))
+        return c.post(_url(patient, earlier, later))
 
     answers = _in_threads(2, ask)
-    assert all(getattr(r, "status_code", r) == 200 for r in answers), answers
+    assert all(getattr(r, "status_code", r) == 302 for r in answers), answers
     assert not both_checked.broken
     assert Job.objects.filter(kind=Job.COMPARISON).count() == 1
     assert Job.objects.get(kind=Job.COMPARISON).state == Job.SUCCEEDED

@@ -42,7 +42,7 @@ def test_the_comparison_page_names_both_curves(client, charlie, patient_with_two
         rec.indices = _s_curve(rec.indices, right, left)
         rec.save(update_fields=["indices"])
     client.force_login(charlie)
-    r = client.get(f"/patients/{p.pk}/compare/?earlier={first.pk}&later={second.pk}")
+    r = client.post(f"/patients/{p.pk}/compare/?earlier={first.pk}&later={second.pk}", follow=True)
     assert r.status_code == 200
     html = r.content.decode()
     # the table: both curves in each scan's column, the larger first

@@ -18,7 +18,7 @@ def test_it_says_why_the_trunk_offsets_have_no_verdict(client, charlie, patient_
     later.indices = indices
     later.save(update_fields=["indices"])
     client.force_login(charlie)
-    r = client.get(f"/patients/{p.pk}/compare/?earlier={first.pk}&later={second.pk}")
+    r = client.post(f"/patients/{p.pk}/compare/?earlier={first.pk}&later={second.pk}", follow=True)
     assert r.status_code == 200
     html = r.content.decode()
     assert "no verdict: the sacral point was marked on one scan and found automatically on the other" in html

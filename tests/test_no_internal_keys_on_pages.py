@@ -2,7 +2,7 @@
 
 import pytest
 
-from tests.test_browser_comparison import patient_with_two_visits  # noqa: F401 (fixture)
+from tests.test_browser_comparison import compared, patient_with_two_visits  # noqa: F401 (fixture)
 
 
 @pytest.mark.django_db
@@ -12,6 +12,7 @@ def test_no_key_of_the_flattened_indices_appears_in_any_page(client, charlie, pa
 
     p = patient_with_two_visits
     first, second = p.visits.all()
+    compared(p)
     recs = list(Reconstruction.objects.filter(session__visit__patient=p))
     keys = set(INDEX_FIGURES)
     for rec in recs:

@@ -4,7 +4,7 @@ import datetime
 
 import pytest
 
-from tests.test_browser_comparison import patient_with_two_visits  # noqa: F401 (fixture)
+from tests.test_browser_comparison import compared, patient_with_two_visits  # noqa: F401 (fixture)
 
 
 @pytest.mark.django_db
@@ -16,6 +16,7 @@ def test_it_names_the_patient_on_the_history_visit_comparison_and_picture_pages(
     p.date_of_birth = datetime.date(2013, 3, 14)
     p.save()
     first, second = p.visits.all()
+    compared(p)
     rec = Reconstruction.objects.get(session__visit=second)
     client.force_login(charlie)
     pages = [f"/patients/{p.pk}/", f"/visits/{first.pk}/", f"/visits/{second.pk}/",

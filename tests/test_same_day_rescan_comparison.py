@@ -35,13 +35,13 @@ def test_a_same_day_rescan_opens_labelled_as_repeatability(client, charlie, pati
     # the history offers every scan, the re-scan among them
     history = client.get(f"/patients/{p.pk}/").content.decode()
     assert "scan 1 of 2" in history and "scan 2 of 2" in history
-    r = client.get(f"/patients/{p.pk}/compare/?earlier_scan={original.pk}&later_scan={again.pk}")
+    r = client.post(f"/patients/{p.pk}/compare/?earlier_scan={original.pk}&later_scan={again.pk}", follow=True)
     assert r.status_code == 200
     html = r.content.decode()
     assert "Same-day re-scan" in html and "repeatability" in html and "not a change" in html
     assert 'id="deformation"' in html
     # choosing the same visit twice compares its two scans (it was a 404)
-    r = client.get(f"/patients/{p.pk}/compare/?earlier={first.pk}&later={first.pk}")
+    r = client.post(f"/patients/{p.pk}/compare/?earlier={first.pk}&later={first.pk}", follow=True)
     assert r.status_code == 200 and "Same-day re-scan" in r.content.decode()
 
 
