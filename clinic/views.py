@@ -596,6 +596,7 @@ def visit(request, visit_id):
         **patient_context(v.patient, v.date),
         "visit": v, "rec": rec, "jobs": jobs, "running": running or recomputing, "pairs": pairs, "arms": arms,
         "landmark_job": landmark_job, "recomputing": recomputing,
+        "landmark_version": landmark_version(rec) if rec else "",
         "pick_src": reverse("picture", args=["reconstruction", rec.pk, f"torso-{PICK_VIEW}"])
         if rec and f"torso-{PICK_VIEW}" in (rec.pictures or {}) and (rec.indices or {}).get("frame") else None,
         "quality": scan_quality(rec), "index_rows": index_rows_of(rec.indices if rec else None),
@@ -631,7 +632,7 @@ def correct_landmarks(request, visit_id):
                     "message": f"{name.replace('_', ' ')}: give three numbers x y z in mm (each within "
                                f"±{LANDMARK_LIMIT_MM:g} mm), got {raw[:80]!r}"}, status=400)
             landmarks[name] = xyz
-    return _apply_landmarks(request, v, rec, landmarks or None, _history_after(request, rec))
+    return _apply_landmarks(request, v, rec, lambda cur: (landmarks or None, _history_after(request, cur)))
 
 
 LANDMARK_HISTORY = 20  # corrections a torso keeps for undo
@@ -652,6 +653,13 @@ def _history_after(request, rec) -> list:
     return [*(rec.landmark_history or []), entry][-LANDMARK_HISTORY:]
 
 
+def landmark_version(rec) -> str:
+    """What a landmark form was drawn from: the torso and its landmarks and their history. A correction posted
+    with another torso's, or after someone else's correction or undo, is refused rather than applied over it."""
+    state = json.dumps([rec.landmarks, rec.landmark_history], sort_keys=True)
+    return f"{rec.pk}-{hashlib.sha256(state.encode()).hexdigest()[:16]}"
+
+
 @login_required
 @require_POST
 def undo_landmarks(request, visit_id):
@@ -659,21 +667,44 @@ def undo_landmarks(request, visit_id):
     v, rec = _torso_to_correct(request, visit_id)
     if rec is None or not rec.landmark_history:
         raise Http404("no landmark correction to undo")
-    history = list(rec.landmark_history)
-    last = history.pop()
-    return _apply_landmarks(request, v, rec, last.get("landmarks"), history)
+
+    def undone(cur):
+        history = list(cur.landmark_history or [])
+        if not history:  # undone by someone else meanwhile (a request without the page's version)
+            raise _LandmarksChanged()
+        return history.pop().get("landmarks"), history
+
+    return _apply_landmarks(request, v, rec, undone)
 
 
-def _apply_landmarks(request, v, rec, landmarks, history):
-    """Store the landmarks (with who changed what, for undo), then compute the torso's indices and pictures again
-    as a job (the visit page shows its progress; in the embedded default it runs here); the comparisons resting
-    on the torso are queued again by it. If the indices cannot be computed from these landmarks, the job puts
-    the previous ones back and says so on the visit page."""
-    with transaction.atomic():
-        rec.landmarks = landmarks
-        rec.landmark_history = history
-        rec.save(update_fields=["landmarks", "landmark_history"])
-        job = pipeline.queue_landmark_analysis(rec)  # committed with the landmarks
+class _LandmarksChanged(Exception):
+    """The torso's landmarks are not those the correction was made on."""
+
+
+def _apply_landmarks(request, v, rec, change):
+    """Store the landmarks ``change(torso)`` gives (with who changed what, for undo), then compute the torso's
+    indices and pictures again as a job (the visit page shows its progress; in the embedded default it runs
+    here); the comparisons resting on the torso are queued again by it. If the indices cannot be computed from
+    these landmarks, the job puts the previous ones back and says so on the visit page.
+
+    The torso's row is locked and read again first, so two corrections at once apply one after the other, each
+    to the landmarks the other left; one posted from a page drawn before another correction (its
+    ``based_on`` is not :func:`landmark_version`) is refused with 409 and stores nothing."""
+    based_on = request.POST.get("based_on")
+    try:
+        with transaction.atomic():
+            cur = Reconstruction.objects.select_for_update().get(pk=rec.pk)
+            if based_on is not None and based_on != landmark_version(cur):
+                raise _LandmarksChanged()
+            cur.landmarks, cur.landmark_history = change(cur)
+            cur.save(update_fields=["landmarks", "landmark_history"])
+            job = pipeline.queue_landmark_analysis(cur)  # committed with the landmarks
+    except _LandmarksChanged:
+        last = (Reconstruction.objects.get(pk=rec.pk).landmark_history or [{}])[-1]
+        who = f" ({last['by']} at {last['at']})" if last.get("by") else ""
+        return _refused(request, f"The landmarks of this scan were changed since this page was opened{who}, or "
+                                 f"a newer scan of the visit came: nothing was stored. Look at the page again, then "
+                                 f"correct what is still wrong.", 409, back=reverse("visit", args=[v.pk]))
     job = pipeline.send_now(job)
     if job.state == Job.SUCCEEDED:
         messages.info(request, "The indices and pictures were computed again from the corrected landmarks; the "
@@ -719,8 +750,9 @@ def pick_landmark(request, visit_id):
     if point is None:
         return _refused(request, f"at: there is no skin at ({x:.0f}, {y:.0f}) on the picture; click on the back",
                         400, back=back)
-    landmarks = {**(rec.landmarks or {}), name: [round(float(c), 1) for c in point]}
-    return _apply_landmarks(request, v, rec, landmarks, _history_after(request, rec))
+    placed = [round(float(c), 1) for c in point]
+    return _apply_landmarks(request, v, rec,
+                            lambda cur: ({**(cur.landmarks or {}), name: placed}, _history_after(request, cur)))
 
 
 @login_required
