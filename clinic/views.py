@@ -654,9 +654,11 @@ def _history_after(request, rec) -> list:
 
 
 def landmark_version(rec) -> str:
-    """What a landmark form was drawn from: the torso and its landmarks and their history. A correction posted
-    with another torso's, or after someone else's correction or undo, is refused rather than applied over it."""
-    state = json.dumps([rec.landmarks, rec.landmark_history], sort_keys=True)
+    """What a landmark form was drawn from: the torso, its landmarks and their history, and the patient frame
+    its pictures were drawn in (a click is read through it). A correction posted with another torso's, after
+    someone else's correction or undo, or from pictures drawn before the indices were computed again, is refused
+    rather than applied over it."""
+    state = json.dumps([rec.landmarks, rec.landmark_history, (rec.indices or {}).get("frame")], sort_keys=True)
     return f"{rec.pk}-{hashlib.sha256(state.encode()).hexdigest()[:16]}"
 
 
@@ -665,13 +667,15 @@ def landmark_version(rec) -> str:
 def undo_landmarks(request, visit_id):
     """The last landmark correction undone: the landmarks before it come back, and everything is computed again."""
     v, rec = _torso_to_correct(request, visit_id)
-    if rec is None or not rec.landmark_history:
+    if rec is None:
         raise Http404("no landmark correction to undo")
 
     def undone(cur):
+        # judged on the locked row, after the page's version: an undo from a page drawn before another undo is
+        # a conflict (409), one with nothing to undo from a current page (or without a page) a 404
         history = list(cur.landmark_history or [])
-        if not history:  # undone by someone else meanwhile (a request without the page's version)
-            raise _LandmarksChanged()
+        if not history:
+            raise Http404("no landmark correction to undo")
         return history.pop().get("landmarks"), history
 
     return _apply_landmarks(request, v, rec, undone)
@@ -700,11 +704,11 @@ def _apply_landmarks(request, v, rec, change):
             cur.save(update_fields=["landmarks", "landmark_history"])
             job = pipeline.queue_landmark_analysis(cur)  # committed with the landmarks
     except _LandmarksChanged:
-        last = (Reconstruction.objects.get(pk=rec.pk).landmark_history or [{}])[-1]
-        who = f" ({last['by']} at {last['at']})" if last.get("by") else ""
-        return _refused(request, f"The landmarks of this scan were changed since this page was opened{who}, or "
-                                 f"a newer scan of the visit came: nothing was stored. Look at the page again, then "
-                                 f"correct what is still wrong.", 409, back=reverse("visit", args=[v.pk]))
+        # who is not named: an undo leaves no entry, so the history's last author may be someone before the page
+        return _refused(request, "This scan's landmarks changed since this page was opened (another correction, "
+                                 "an undo, or the indices computed again), or a newer scan of the visit came: "
+                                 "nothing was stored. Look at the page again (its history says who corrected "
+                                 "what), then correct what is still wrong.", 409, back=reverse("visit", args=[v.pk]))
     job = pipeline.send_now(job)
     if job.state == Job.SUCCEEDED:
         messages.info(request, "The indices and pictures were computed again from the corrected landmarks; the "
@@ -772,6 +776,10 @@ def comparison(request, patient_id):
     by_pk = {r.pk: r for r in scans}
     # a form's POST carries its choice in the body; the page's own buttons post to its address (the query)
     asked = request.POST if "earlier_scan" in request.POST or "earlier" in request.POST else request.GET
+    if not any(f in asked for f in ("earlier_scan", "later_scan", "earlier", "later")):
+        # no pair: e.g. back from signing in after a form posted once the session had ended (the sign-in keeps
+        # the address, not the form): the patient's page, where the pair is chosen
+        return redirect(back)
     try:
         if "earlier_scan" in asked or "later_scan" in asked:
             earlier, later = (by_pk.get(int(asked.get(f, ""))) for f in ("earlier_scan", "later_scan"))
@@ -804,6 +812,10 @@ def comparison(request, patient_id):
         return redirect(f"{reverse('comparison', args=[p.pk])}?earlier_scan={earlier.pk}&later_scan={later.pk}")
     if comp is None:
         job = pipeline.comparison_job_of(earlier, later)
+        if job is not None and job.state == Job.SUCCEEDED:  # finished since the first read, or its result removed
+            comp = Comparison.objects.filter(earlier=earlier, later=later).first()
+            if comp is not None:
+                return _comparison_page(request, p, earlier, later, comp, scans)
         gone = job is not None and job.state == Job.SUCCEEDED  # its result was removed since: compare again
         return render(request, "clinic/comparison_progress.html", {
             **patient_context(p), "job": None if gone else job, "earlier": earlier, "later": later,

@@ -42,7 +42,7 @@ def test_it_refuses_a_correction_from_a_page_drawn_before_another(client, charli
     r = client.post(f"/visits/{visit.pk}/landmarks", {"sacral_point": _xyz(late), "based_on": seen})
     assert r.status_code == 409
     html = r.content.decode()
-    assert "changed since this page was opened (charlie at" in html and "nothing was stored" in html
+    assert "landmarks changed since this page was opened" in html and "nothing was stored" in html
     rec.refresh_from_db()
     assert rec.landmarks == {"sacral_point": first} and len(rec.landmark_history) == 1
     assert Job.objects.filter(kind=Job.LANDMARKS).count() == jobs
