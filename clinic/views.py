@@ -17,6 +17,8 @@ import json
 import logging
 import math
 import tempfile
+import time
+import uuid
 from pathlib import Path
 
 from django import forms
@@ -27,7 +29,7 @@ from django.contrib.auth.decorators import login_required
 from django.core import validators
 from django.core.exceptions import PermissionDenied
 from django.core.files.storage import default_storage
-from django.db import connection, transaction
+from django.db import IntegrityError, connection, transaction
 from django.core.cache import cache
 from django.core.paginator import Paginator
 from django.db.models import Count, Exists, F, Max, OuterRef, Q
@@ -935,15 +937,36 @@ def _rig_page(request, r, new_key=None):
         "rig": r, "calibrations": cal_rows, "cameras": cams, "has_checks": any(c["checks"] for c in cams),
         "calibration_due": _calibration_due(r, timezone.now()),
         "may_manage_keys": may_manage_keys, "keys": r.keys.order_by("-created") if may_manage_keys else [],
-        "new_key": new_key})
+        "new_key": new_key, "form_token": uuid.uuid4().hex})
 
 
 @login_required
 @require_POST
 def issue_rig_key(request, serial):
-    """A new API key for the rig, shown on this one answer only (only its hash is kept)."""
-    issued = _run_api(api.new_rig_key, request, serial)
+    """A new API key for the rig, shown on this one answer only (only its hash is kept).
+
+    One click makes one live key: the form's token remembers the key it issued, and a second post of the same
+    form (a double click, whose first answer the browser drops, or a reload of the answer) revokes that key and
+    shows a new one, so no live key is left that nobody saw."""
     r = get_object_or_404(Rig.objects.filter(clinic__in=clinics_of(request.user)), serial=serial)
+    token = request.POST.get("form_token", "")
+    key = f"form-once:{request.user.pk}:{token}" if 8 <= len(token) <= 64 and token.isalnum() else None
+    if key is not None and not cache.add(key, "", FORM_TOKEN_SECONDS):
+        for _ in range(40):  # the first post may still be issuing its key
+            earlier = cache.get(key)
+            if earlier != "":
+                break
+            time.sleep(0.25)
+        if earlier:
+            r.keys.filter(prefix=earlier, revoked__isnull=True).update(revoked=timezone.now())
+    try:
+        issued = _run_api(api.new_rig_key, request, serial)
+    except BaseException:
+        if key is not None:
+            cache.delete(key)
+        raise
+    if key is not None:
+        cache.set(key, issued["key"][:10], FORM_TOKEN_SECONDS)  # its prefix (RigKey.issue)
     return _rig_page(request, r, new_key=issued["key"])
 
 
@@ -1206,6 +1229,85 @@ def _form_page(request, form, title, context=None, status=200):
     return render(request, "clinic/form.html", {"form": form, "title": title, **(context or {})}, status=status)
 
 
+FORM_TOKEN_SECONDS = 3600  # how long a form's one-time token is remembered (a double click, a re-post, a reload)
+
+
+def _form_token(request) -> str:
+    """The one-time token a creating form carries: the posted one (a form shown again with its errors keeps it)
+    or a new one."""
+    posted = request.POST.get("form_token", "")
+    return posted if 8 <= len(posted) <= 64 and posted.isalnum() else uuid.uuid4().hex
+
+
+def _once(request, make):
+    """``make()``'s answer, made once per form: a second post of the same form (a double click on Save, a
+    browser re-posting after a slow answer, a reload of the answer) is sent where the first one's answer went
+    instead of making a second patient or visit. A form whose answer was not a redirect (it had errors) may be
+    posted again. The tokens live in the cache, which production shares between processes (CACHE_URL)."""
+    token = request.POST.get("form_token", "")
+    if not (8 <= len(token) <= 64 and token.isalnum()):
+        return make()  # no token (an old page, a script): as before
+    key = f"form-once:{request.user.pk}:{token}"
+    if not cache.add(key, "", FORM_TOKEN_SECONDS):
+        for _ in range(40):  # the first post may still be saving: wait for where it went (at most about 10 s)
+            done = cache.get(key)
+            if done:
+                return redirect(done)
+            if done is None:  # the first had errors (or the cache forgot it): this one is made afresh
+                return _once(request, make)
+            time.sleep(0.25)
+        return _refused(request, "This form was sent twice and the first is still being saved: look at the "
+                                 "patient's page in a moment before sending it again.", 409)
+    try:
+        response = make()
+    except BaseException:
+        cache.delete(key)
+        raise
+    if response.status_code == 302:
+        cache.set(key, response["Location"], FORM_TOKEN_SECONDS)
+    else:
+        cache.delete(key)
+    return response
+
+
+def record_version(form) -> str:
+    """What an edit form was drawn from: its fields' values as stored then (a short hash)."""
+    values = {name: form.initial.get(name) for name in form.fields}
+    return hashlib.sha256(json.dumps(values, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _edit(request, form_class, model, pk, title, ctx, done, **form_kw):
+    """An edit form for the row ``pk`` of ``model``. The row is locked and read again when the form is saved;
+    if it changed since the form was drawn (``based_on``), nothing is saved and the form comes back (409) naming
+    what changed meanwhile and its value now, with the person's own entries kept: saving again then overwrites
+    knowingly."""
+    if request.method != "POST":
+        form = form_class(instance=model.objects.get(pk=pk), **form_kw)
+        return _form_page(request, form, title, {**ctx, "based_on": record_version(form)})
+    with transaction.atomic():
+        row = model.objects.select_for_update().get(pk=pk)
+        stored = form_class(instance=row, **form_kw)
+        form = form_class(request.POST, instance=row, **form_kw)
+        now = record_version(stored)
+        based_on = request.POST.get("based_on")
+        if based_on is not None and based_on != now:
+            mine = form_class(request.POST, **form_kw)  # the entries as posted, to find what differs
+            changed = [f"{stored[name].label.lower()} (now {stored.initial.get(name) or 'empty'})"
+                       for name in stored.fields if name in stored.initial and name not in ("clinic",)
+                       and str(stored.initial.get(name) or "") != str(mine.data.get(name, "") or "")
+                       and name in mine.data]
+            form.is_valid()
+            form.add_error(None, "Someone else saved this record since you opened the form; nothing was saved. "
+                                 + ("Now stored differently from your form: " + "; ".join(changed) + ". "
+                                    if changed else "")
+                                 + "Check your entries below and save again to keep them.")
+            return _form_page(request, form, title, {**ctx, "based_on": now}, status=409)
+        if not form.is_valid():
+            return _form_page(request, form, title, {**ctx, "based_on": based_on or now}, status=400)
+        form.save()
+    return done()
+
+
 def _editable_clinics(request):
     return clinics_of(request.user).filter(pk__in=[c.pk for c in clinics_of(request.user)
                                                    if _may(request, c.pk, EDIT_PATIENTS)])
@@ -1217,29 +1319,42 @@ def new_patient(request):
     if not clinics.exists():
         raise PermissionDenied("you are not a member of any clinic")
     form = PatientForm(request.POST or None, clinics=clinics)
-    if request.method == "POST":
-        if form.is_valid():
-            _require_role(request, form.cleaned_data["clinic"].pk, EDIT_PATIENTS)
-            p = form.save()
-            messages.success(request, f"Patient {p.name} ({p.identifier}) created.")
-            return redirect("patient", patient_id=p.pk)
-        return _form_page(request, form, "New patient", status=400)
-    return _form_page(request, form, "New patient")
+    token = {"form_token": _form_token(request)}
+    if request.method != "POST":
+        return _form_page(request, form, "New patient", token)
+
+    def create():
+        if not form.is_valid():
+            return _form_page(request, form, "New patient", token, status=400)
+        _require_role(request, form.cleaned_data["clinic"].pk, EDIT_PATIENTS)
+        try:
+            with transaction.atomic():
+                p = form.save()
+        except IntegrityError:  # the same identifier saved by another request since the form's check
+            form.add_error("identifier", f"identifier {form.cleaned_data['identifier']}: the clinic already has "
+                                         f"a patient with it (saved a moment ago)")
+            return _form_page(request, form, "New patient", token, status=400)
+        messages.success(request, f"Patient {p.name} ({p.identifier}) created.")
+        return redirect("patient", patient_id=p.pk)
+
+    return _once(request, create)
 
 
 @login_required
 def edit_patient(request, patient_id):
     p = get_object_or_404(_patients(request.user), pk=patient_id)
     _require_role(request, p.clinic_id, EDIT_PATIENTS)
-    form = PatientForm(request.POST or None, instance=p)
-    ctx = patient_context(p)
-    if request.method == "POST":
-        if form.is_valid():
-            form.save()
-            messages.success(request, "Patient saved.")
-            return redirect("patient", patient_id=p.pk)
-        return _form_page(request, form, f"Edit {p.name}", ctx, status=400)
-    return _form_page(request, form, f"Edit {p.name}", ctx)
+    def saved():
+        messages.success(request, "Patient saved.")
+        return redirect("patient", patient_id=p.pk)
+
+    try:
+        return _edit(request, PatientForm, Patient, p.pk, f"Edit {p.name}", patient_context(p), saved)
+    except IntegrityError:  # an identifier taken by another request since the form's check
+        form = PatientForm(request.POST, instance=Patient.objects.get(pk=p.pk))
+        form.is_valid()
+        form.add_error("identifier", "this identifier was given to another patient a moment ago")
+        return _form_page(request, form, f"Edit {p.name}", patient_context(p), status=400)
 
 
 @login_required
@@ -1247,26 +1362,27 @@ def new_visit(request, patient_id):
     p = get_object_or_404(_patients(request.user), pk=patient_id)
     _require_role(request, p.clinic_id, EDIT_PATIENTS)
     form = VisitForm(request.POST or None, instance=Visit(patient=p, clinician=request.user))
-    ctx = patient_context(p)
-    if request.method == "POST":
-        if form.is_valid():
-            v = form.save()
-            messages.success(request, f"Visit of {v.date} created: the rig can now upload its scans for it.")
-            return redirect("visit", visit_id=v.pk)
-        return _form_page(request, form, "New visit", ctx, status=400)
-    return _form_page(request, form, "New visit", ctx)
+    ctx = {**patient_context(p), "form_token": _form_token(request)}
+    if request.method != "POST":
+        return _form_page(request, form, "New visit", ctx)
+
+    def create():
+        if not form.is_valid():
+            return _form_page(request, form, "New visit", ctx, status=400)
+        v = form.save()
+        messages.success(request, f"Visit of {v.date} created: the rig can now upload its scans for it.")
+        return redirect("visit", visit_id=v.pk)
+
+    return _once(request, create)
 
 
 @login_required
 def edit_visit(request, visit_id):
     v = get_object_or_404(Visit.objects.filter(patient__clinic__in=clinics_of(request.user)), pk=visit_id)
     _require_role(request, v.patient.clinic_id, EDIT_PATIENTS)
-    form = VisitForm(request.POST or None, instance=v)
-    ctx = patient_context(v.patient, v.date)
-    if request.method == "POST":
-        if form.is_valid():
-            form.save()
-            messages.success(request, "Visit saved.")
-            return redirect("visit", visit_id=v.pk)
-        return _form_page(request, form, f"Edit the visit of {v.date}", ctx, status=400)
-    return _form_page(request, form, f"Edit the visit of {v.date}", ctx)
+    def saved():
+        messages.success(request, "Visit saved.")
+        return redirect("visit", visit_id=v.pk)
+
+    return _edit(request, VisitForm, Visit, v.pk, f"Edit the visit of {v.date}", patient_context(v.patient, v.date),
+                 saved)
