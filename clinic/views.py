@@ -27,7 +27,7 @@ from django.contrib import messages
 from django.contrib.auth import get_user_model
 from django.contrib.auth.decorators import login_required
 from django.core import validators
-from django.core.exceptions import PermissionDenied
+from django.core.exceptions import BadRequest, PermissionDenied
 from django.core.files.storage import default_storage
 from django.db import IntegrityError, connection, transaction
 from django.core.cache import cache
@@ -43,7 +43,7 @@ from django.views.decorators.http import require_http_methods, require_POST
 from . import api, labels, pipeline
 from .models import (CaptureSession, Comparison, Job, Member, Patient, Reconstruction, Rig, StabilityCheck, Visit,
                      captures_of, clinics_of, jobs_of)
-from .validation import MAX_NOTES
+from .validation import MAX_NOTES, Invalid
 
 # Who may do what. Actions the API has (re-running a job, issuing and revoking a rig's keys) are run through
 # the API's own operations, so the pages get its scoping, its role check (`member_clinic`, administrators and
@@ -83,11 +83,18 @@ def _run_api(operation, request, *args):
         if exc.status in (403, 404):
             raise (Http404 if exc.status == 404 else PermissionDenied)(exc.detail) from None
         raise
+    except Invalid as exc:  # a field of the address or the form breaks a rule: the page says which
+        raise BadRequest(str(exc)) from None
     return json.loads(out.content) if isinstance(out, HttpResponse) else out
 
 
 def _refused(request, message, status, back=None):
     return render(request, "clinic/error.html", {"message": message, "back": back}, status=status)
+
+
+def bad_request(request, exception=None):
+    """A refused request (``BadRequest``), with what was wrong in it."""
+    return _refused(request, str(exception) if exception else "The request could not be understood.", 400)
 
 
 def healthz(request):
