@@ -28,6 +28,7 @@ from pathlib import Path, PurePosixPath
 from typing import Annotated, Literal, Optional
 
 from django.conf import settings
+from django.core.cache import cache
 from django.core.exceptions import RequestDataTooBig
 from django.core.files import File
 from django.core.files.storage import default_storage
@@ -841,10 +842,15 @@ def register_testfield(request, body: TestFieldIn):
 @api.post("/patients", auth=django_auth, tags=["staff"])
 def create_patient(request, body: PatientIn):
     clinic = member_clinic(request, body.clinic, roles=(Member.ADMINISTRATOR, Member.TECHNICIAN, Member.CLINICIAN))
+    exists = ApiError(409, f"patient {body.identifier!r} already exists in {clinic.name}")
     if Patient.objects.filter(clinic=clinic, identifier=body.identifier).exists():
-        raise ApiError(409, f"patient {body.identifier!r} already exists in {clinic.name}")
-    p = Patient.objects.create(clinic=clinic, identifier=body.identifier, name=body.name,
-                               date_of_birth=body.date_of_birth or None, sex=body.sex, notes=body.notes)
+        raise exists
+    try:
+        with transaction.atomic():
+            p = Patient.objects.create(clinic=clinic, identifier=body.identifier, name=body.name,
+                                       date_of_birth=body.date_of_birth or None, sex=body.sex, notes=body.notes)
+    except IntegrityError:  # made by another request since the check
+        raise exists from None
     return _respond(request, {"id": p.pk, "identifier": p.identifier}, 201)
 
 
@@ -853,8 +859,18 @@ def create_visit(request, body: VisitIn, patient_id: int = PathParam(..., ge=1, 
     patient = get_object_or_404(Patient.objects.filter(clinic__in=clinics_of(request.user)), pk=patient_id)
     if body.date is not None and patient.date_of_birth and body.date < patient.date_of_birth:
         raise ApiError(400, f"date {body.date} is before the patient's date of birth ({patient.date_of_birth})")
+    # a retried request (its answer lost) sends the same Idempotency-Key: it gets the visit the first made, not a
+    # second one. Remembered in the cache (shared by the service's processes) for a day
+    key = check_param(request.headers.get("Idempotency-Key", ""), "Idempotency-Key header", 200)
+    remembered = f"api-visit:{request.user.pk}:{patient.pk}:{hashlib.sha256(key.encode()).hexdigest()}"
+    if key:
+        earlier = Visit.objects.filter(pk=cache.get(remembered) or 0, patient=patient).first()
+        if earlier is not None:
+            return _respond(request, {"id": earlier.pk, "date": str(earlier.date)}, 200)
     v = Visit.objects.create(patient=patient, date=body.date or timezone.localdate(), clinician=request.user,
                              reason=body.reason, notes=body.notes)
+    if key:
+        cache.set(remembered, v.pk, 86400)
     return _respond(request, {"id": v.pk, "date": str(v.date)}, 201)
 
 
