@@ -6,59 +6,10 @@ Each person's form is read from the page as the browser would submit it (every f
 drew, so a version field a fix adds is posted back too); each changes one field and saves.
 """
 
-from html.parser import HTMLParser
-
 import pytest
 
 from clinic.models import Patient, Visit
-
-
-class _Form(HTMLParser):
-    """The fields of the page's data form (``class="card form"``), as a browser would post them."""
-
-    def __init__(self):
-        super().__init__()
-        self.data, self._in, self._textarea, self._select = {}, False, None, None
-
-    def handle_starttag(self, tag, attrs):
-        a = dict(attrs)
-        if tag == "form" and "form" in (a.get("class") or "").split():
-            self._in = True
-        if not self._in:
-            return
-        if tag == "input" and a.get("name") and a.get("type") not in ("submit", "button"):
-            if a.get("type") in ("checkbox", "radio") and "checked" not in a:
-                return
-            self.data[a["name"]] = a.get("value") or ""
-        elif tag == "textarea":
-            self._textarea = a["name"]
-            self.data[self._textarea] = ""
-        elif tag == "select":
-            self._select = a["name"]
-            self.data.setdefault(self._select, "")
-        elif tag == "option" and self._select and "selected" in a:
-            self.data[self._select] = a.get("value") or ""
-
-    def handle_endtag(self, tag):
-        if tag == "form":
-            self._in = False
-        elif tag == "textarea":
-            self._textarea = None
-        elif tag == "select":
-            self._select = None
-
-    def handle_data(self, data):
-        if self._textarea:
-            self.data[self._textarea] += data
-
-
-def form_of(client, url) -> dict:
-    r = client.get(url)
-    assert r.status_code == 200
-    parser = _Form()
-    parser.feed(r.content.decode())
-    assert parser.data, "no form on the page"
-    return parser.data
+from tests.page_forms import fields_of, form_of
 
 
 @pytest.mark.django_db
@@ -84,10 +35,9 @@ def test_it_refuses_a_visit_saved_from_a_form_opened_before_another_save(client,
     assert "Someone else saved this record" in html and "next visit due (now 2027-01-01)" in html
     assert "Risser 2, Adams forward bend positive" in html  # the clinician's entry is kept on the form
     # saving the form shown again (its version is the record's now) keeps the clinician's entries knowingly
-    again = _Form()
-    again.feed(html)
-    again.data["next_visit_due"] = "2027-01-01"  # the clinician takes the booked date over
-    assert client.post(url, again.data).status_code == 302
+    again = fields_of(html)
+    again["next_visit_due"] = "2027-01-01"  # the clinician takes the booked date over
+    assert client.post(url, again).status_code == 302
     v.refresh_from_db()
     assert (v.notes, str(v.next_visit_due)) == ("Risser 2, Adams forward bend positive", "2027-01-01")
 
