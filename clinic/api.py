@@ -21,6 +21,7 @@ import os
 import secrets
 import struct
 import tempfile
+import time
 import zipfile
 import zlib
 import datetime as dt
@@ -854,6 +855,9 @@ def create_patient(request, body: PatientIn):
     return _respond(request, {"id": p.pk, "identifier": p.identifier}, 201)
 
 
+IDEMPOTENCY_WAIT_S = 10.0  # how long a retry waits for the first request with its key to finish (then 503)
+
+
 @api.post("/patients/{patient_id}/visits", auth=django_auth, tags=["staff"])
 def create_visit(request, body: VisitIn, patient_id: int = PathParam(..., ge=1, le=MAX_ID)):
     patient = get_object_or_404(Patient.objects.filter(clinic__in=clinics_of(request.user)), pk=patient_id)
@@ -863,12 +867,28 @@ def create_visit(request, body: VisitIn, patient_id: int = PathParam(..., ge=1, 
     # second one. Remembered in the cache (shared by the service's processes) for a day
     key = check_param(request.headers.get("Idempotency-Key", ""), "Idempotency-Key header", 200)
     remembered = f"api-visit:{request.user.pk}:{patient.pk}:{hashlib.sha256(key.encode()).hexdigest()}"
-    if key:
-        earlier = Visit.objects.filter(pk=cache.get(remembered) or 0, patient=patient).first()
-        if earlier is not None:
-            return _respond(request, {"id": earlier.pk, "date": str(earlier.date)}, 200)
-    v = Visit.objects.create(patient=patient, date=body.date or timezone.localdate(), clinician=request.user,
-                             reason=body.reason, notes=body.notes)
+    if key and not cache.add(remembered, 0, 86400):  # claimed by an earlier request: its visit (once made)
+        deadline = time.monotonic() + IDEMPOTENCY_WAIT_S
+        while time.monotonic() < deadline:
+            made = cache.get(remembered)
+            if made:
+                earlier = Visit.objects.filter(pk=made, patient=patient).first()
+                if earlier is not None:
+                    return _respond(request, {"id": earlier.pk, "date": str(earlier.date)}, 200)
+            if made is None or made:  # the first failed, the cache forgot it, or its visit was erased: make one
+                break
+            time.sleep(0.25)  # 0: the first is still making it
+        else:
+            raise Unavailable("the first request with this Idempotency-Key is still making its visit (retry with "
+                              "the same key)")
+        cache.set(remembered, 0, 86400)
+    try:
+        v = Visit.objects.create(patient=patient, date=body.date or timezone.localdate(), clinician=request.user,
+                                 reason=body.reason, notes=body.notes)
+    except BaseException:
+        if key:
+            cache.delete(remembered)
+        raise
     if key:
         cache.set(remembered, v.pk, 86400)
     return _respond(request, {"id": v.pk, "date": str(v.date)}, 201)

@@ -43,7 +43,7 @@ from django.views.decorators.http import require_http_methods, require_POST
 from . import api, labels, pipeline
 from .models import (CaptureSession, Comparison, Job, Member, Patient, Reconstruction, Rig, StabilityCheck, Visit,
                      captures_of, clinics_of, jobs_of)
-from .validation import MAX_NOTES, Invalid
+from .validation import MAX_NOTES, Invalid, check_param
 
 # Who may do what. Actions the API has (re-running a job, issuing and revoking a rig's keys) are run through
 # the API's own operations, so the pages get its scoping, its role check (`member_clinic`, administrators and
@@ -93,8 +93,11 @@ def _refused(request, message, status, back=None):
 
 
 def bad_request(request, exception=None):
-    """A refused request (``BadRequest``), with what was wrong in it."""
-    return _refused(request, str(exception) if exception else "The request could not be understood.", 400)
+    """A refused request: ours (``BadRequest``, raised by :func:`_run_api`) with what was wrong in it; Django's
+    own (a forged Host header, its other ``SuspiciousOperation`` refusals) without their words, which name
+    settings."""
+    words = str(exception) if type(exception) is BadRequest else ""
+    return _refused(request, words or "The request could not be understood.", 400)
 
 
 def healthz(request):
@@ -922,7 +925,7 @@ def _calibration_due(r, now) -> dict:
             "in_words": span_words(now.date(), due.date()) if due >= now else span_words(due.date(), now.date())}
 
 
-def _rig_page(request, r, new_key=None):
+def _rig_page(request, r, new_key=None, replaced_key=None):
     calibrations = list(r.calibrations.all().order_by("calibrated_at"))
     by_camera = {}  # every camera's checks in one query
     for check in (StabilityCheck.objects.filter(camera__rig=r).annotate(calibrated_at=F("calibration__calibrated_at"))
@@ -944,7 +947,7 @@ def _rig_page(request, r, new_key=None):
         "rig": r, "calibrations": cal_rows, "cameras": cams, "has_checks": any(c["checks"] for c in cams),
         "calibration_due": _calibration_due(r, timezone.now()),
         "may_manage_keys": may_manage_keys, "keys": r.keys.order_by("-created") if may_manage_keys else [],
-        "new_key": new_key, "form_token": uuid.uuid4().hex})
+        "new_key": new_key, "replaced_key": replaced_key, "form_token": uuid.uuid4().hex})
 
 
 @login_required
@@ -955,7 +958,13 @@ def issue_rig_key(request, serial):
     One click makes one live key: the form's token remembers the key it issued, and a second post of the same
     form (a double click, whose first answer the browser drops, or a reload of the answer) revokes that key and
     shows a new one, so no live key is left that nobody saw."""
+    try:
+        check_param(serial, "serial", 64)
+    except Invalid as exc:
+        raise BadRequest(str(exc)) from None
     r = get_object_or_404(Rig.objects.filter(clinic__in=clinics_of(request.user)), serial=serial)
+    _require_role(request, r.clinic_id)  # as the API's (before a repeat revokes anything)
+    revoked = None
     token = request.POST.get("form_token", "")
     key = f"form-once:{request.user.pk}:{token}" if 8 <= len(token) <= 64 and token.isalnum() else None
     if key is not None and not cache.add(key, "", FORM_TOKEN_SECONDS):
@@ -964,8 +973,8 @@ def issue_rig_key(request, serial):
             if earlier != "":
                 break
             time.sleep(0.25)
-        if earlier:
-            r.keys.filter(prefix=earlier, revoked__isnull=True).update(revoked=timezone.now())
+        if earlier and r.keys.filter(prefix=earlier, revoked__isnull=True).update(revoked=timezone.now()):
+            revoked = earlier
     try:
         issued = _run_api(api.new_rig_key, request, serial)
     except BaseException:
@@ -974,7 +983,7 @@ def issue_rig_key(request, serial):
         raise
     if key is not None:
         cache.set(key, issued["key"][:10], FORM_TOKEN_SECONDS)  # its prefix (RigKey.issue)
-    return _rig_page(request, r, new_key=issued["key"])
+    return _rig_page(request, r, new_key=issued["key"], replaced_key=revoked)
 
 
 @login_required
@@ -1297,7 +1306,9 @@ def _edit(request, form_class, model, pk, title, ctx, done, **form_kw):
         form = form_class(request.POST, instance=row, **form_kw)
         now = record_version(stored)
         based_on = request.POST.get("based_on")
-        if based_on is not None and based_on != now:
+        if based_on is not None and based_on != now and not (form.is_valid() and not form.has_changed()):
+            # (the entries equal what is stored: this form's own second post, a double click, or the same edit
+            # made twice: nothing is lost, it is answered as saved)
             mine = form_class(request.POST, **form_kw)  # the entries as posted, to find what differs
             changed = [f"{stored[name].label.lower()} (now {stored.initial.get(name) or 'empty'})"
                        for name in stored.fields if name in stored.initial and name not in ("clinic",)
@@ -1311,7 +1322,8 @@ def _edit(request, form_class, model, pk, title, ctx, done, **form_kw):
             return _form_page(request, form, title, {**ctx, "based_on": now}, status=409)
         if not form.is_valid():
             return _form_page(request, form, title, {**ctx, "based_on": based_on or now}, status=400)
-        form.save()
+        if form.has_changed():
+            form.save()
     return done()
 
 
@@ -1361,7 +1373,8 @@ def edit_patient(request, patient_id):
         form = PatientForm(request.POST, instance=Patient.objects.get(pk=p.pk))
         form.is_valid()
         form.add_error("identifier", "this identifier was given to another patient a moment ago")
-        return _form_page(request, form, f"Edit {p.name}", patient_context(p), status=400)
+        return _form_page(request, form, f"Edit {p.name}",
+                          {**patient_context(p), "based_on": request.POST.get("based_on")}, status=400)
 
 
 @login_required

@@ -42,7 +42,9 @@ def test_a_double_click_on_issue_a_new_key_makes_one_key(client, ada, small_rig)
 
     made = rig.keys.filter(revoked__isnull=True).count() - live_before
     live = rig.keys.filter(revoked__isnull=True).order_by("-pk").first()
-    assert second.status_code == 200 and live.prefix in second.content.decode()  # the key shown is the live one
+    html = second.content.decode()
+    assert second.status_code == 200 and live.prefix in html  # the key shown is the live one
+    assert 'id="replaced-key"' in html and "was revoked: use this one" in html  # and it says the first went
     assert made == 1, (f"one click meant one key; {made} live keys were made and the page (answer "
                        f"{second.status_code}) showed only the last: the others are live credentials nobody "
                        f"holds, listed beside the real one by prefix only")

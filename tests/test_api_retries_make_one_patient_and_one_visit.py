@@ -2,6 +2,7 @@
 Idempotency-Key; a new patient raced by another request is a 409, not a server error."""
 
 import json
+import uuid
 
 import pytest
 
@@ -18,14 +19,41 @@ def test_a_retried_visit_with_its_idempotency_key_is_the_same_visit(client, char
     p = Patient.objects.create(clinic=clinic, identifier="P-1", name="Robin")
     client.force_login(charlie)
     body = {"date": "2027-01-05", "reason": "brace check"}
-    first = _post(client, f"/api/patients/{p.pk}/visits", body, HTTP_IDEMPOTENCY_KEY="visit-2027-01-05-a")
-    again = _post(client, f"/api/patients/{p.pk}/visits", body, HTTP_IDEMPOTENCY_KEY="visit-2027-01-05-a")
+    key = uuid.uuid4().hex  # the cache outlives a test's database: a key of its own
+    first = _post(client, f"/api/patients/{p.pk}/visits", body, HTTP_IDEMPOTENCY_KEY=key)
+    again = _post(client, f"/api/patients/{p.pk}/visits", body, HTTP_IDEMPOTENCY_KEY=key)
     assert (first.status_code, again.status_code) == (201, 200) and first.json() == again.json()
     assert Visit.objects.filter(patient=p).count() == 1
     # another key (or none) is another visit
-    assert _post(client, f"/api/patients/{p.pk}/visits", body, HTTP_IDEMPOTENCY_KEY="b").status_code == 201
+    assert _post(client, f"/api/patients/{p.pk}/visits", body, HTTP_IDEMPOTENCY_KEY=key + "b").status_code == 201
     assert _post(client, f"/api/patients/{p.pk}/visits", body).status_code == 201
     assert Visit.objects.filter(patient=p).count() == 3
+
+
+@pytest.mark.django_db
+def test_a_retry_overlapping_the_first_request_makes_one_visit(client, charlie, clinic, monkeypatch):
+    monkeypatch.setattr(api, "IDEMPOTENCY_WAIT_S", 0.5)  # the retry waits, then is told to come back (503)
+    key = uuid.uuid4().hex
+    p = Patient.objects.create(clinic=clinic, identifier="P-1", name="Robin")
+    client.force_login(charlie)
+    url, body = f"/api/patients/{p.pk}/visits", json.dumps({"date": "2027-01-05", "reason": "brace check"})
+    real_create = Visit.objects.create
+    answers = []
+
+    def slow_insert(**kw):  # the first's insert waits (SQLite's write lock, a busy database); the client times out
+        if not answers:
+            answers.append(None)
+            answers.append(client.post(url, body, content_type="application/json", HTTP_IDEMPOTENCY_KEY=key))
+        return real_create(**kw)
+
+    monkeypatch.setattr(Visit.objects, "create", slow_insert)
+    first = client.post(url, body, content_type="application/json", HTTP_IDEMPOTENCY_KEY=key)
+    retry = answers[1]
+    n = Visit.objects.filter(patient=p).count()
+    assert n == 1, f"one key made {n} visits (answers {first.status_code}, {retry.status_code})"
+    assert (first.status_code, retry.status_code) == (201, 503) and "Retry-After" in retry
+    again = client.post(url, body, content_type="application/json", HTTP_IDEMPOTENCY_KEY=key)
+    assert again.status_code == 200 and again.json() == first.json()
 
 
 @pytest.mark.django_db(transaction=True)

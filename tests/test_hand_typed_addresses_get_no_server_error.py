@@ -21,3 +21,12 @@ def test_it_names_the_field_of_a_key_prefix_too_long(client, ada, small_rig):
     client.raise_request_exception = False
     r = client.post(f"/rigs/{rig.serial}/keys/{'p' * 40}/revoke")
     assert r.status_code == 400 and "prefix" in r.content.decode(), r.status_code
+
+
+@pytest.mark.django_db
+def test_it_does_not_echo_a_forged_host_or_name_a_setting(client):
+    client.raise_request_exception = False
+    r = client.get("/", HTTP_HOST="evil.example")
+    html = r.content.decode()
+    assert r.status_code == 400 and "could not be understood" in html
+    assert "evil.example" not in html and "ALLOWED_HOSTS" not in html

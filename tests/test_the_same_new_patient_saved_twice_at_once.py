@@ -1,10 +1,9 @@
 """Two posts of a new patient with the same identifier at once (two people, or two workers): the one that loses
 the race is told the identifier is taken (400), not a server error (500).
 
-The form's uniqueness checks (``PatientForm.clean`` and the model's constraint in ``_post_clean``) and the insert
-(``form.save()``) are separate queries with no lock between them: both requests pass the check, one inserts, the other's insert breaks the database's
-``patient_identifier_per_clinic`` constraint. The interleaving is made deterministic here: the other request's
-insert is committed right after this request's check.
+The form's uniqueness checks and the insert are separate queries: both requests can pass the check, and the
+database's ``patient_identifier_per_clinic`` constraint refuses the second insert. The interleaving is made
+deterministic here: the other request's insert is committed right after this request's check.
 """
 
 import pytest
