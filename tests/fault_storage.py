@@ -7,7 +7,6 @@
   restart or a network cut does), before the row names the file.
 """
 
-import os
 import threading
 from pathlib import Path
 

@@ -5,8 +5,6 @@ import hashlib
 import json
 import os
 
-import pytest
-
 from tests.pg_server import run_manage, run_sql, template_database
 from tests.services import require_postgres
 

@@ -8,7 +8,6 @@ import functools
 import os
 import shutil
 
-import numpy as np
 import pytest
 from django.core.files.base import ContentFile
 
