@@ -1287,9 +1287,18 @@ def _once(request, make):
 
 
 def record_version(form) -> str:
-    """What an edit form was drawn from: its fields' values as stored then (a short hash)."""
-    values = {name: form.initial.get(name) for name in form.fields}
-    return hashlib.sha256(json.dumps(values, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    """What an edit form was drawn from: a short hash of each field's value as stored then, in the form's field
+    order (so that a refused save can name the fields someone else changed)."""
+    return ".".join(hashlib.sha256(json.dumps(form.initial.get(name), default=str).encode()).hexdigest()[:8]
+                    for name in form.fields)
+
+
+def changed_since(form, based_on: str) -> list:
+    """The fields of ``form`` (bound to the stored row) whose stored value is not the one ``based_on`` (a
+    :func:`record_version`) was drawn from; all of them if ``based_on`` is not such a version."""
+    then, now = based_on.split("."), record_version(form).split(".")
+    names = list(form.fields)
+    return [n for k, n in enumerate(names) if len(then) != len(names) or then[k] != now[k]]
 
 
 def _edit(request, form_class, model, pk, title, ctx, done, **form_kw):
@@ -1309,15 +1318,11 @@ def _edit(request, form_class, model, pk, title, ctx, done, **form_kw):
         if based_on is not None and based_on != now and not (form.is_valid() and not form.has_changed()):
             # (the entries equal what is stored: this form's own second post, a double click, or the same edit
             # made twice: nothing is lost, it is answered as saved)
-            mine = form_class(request.POST, **form_kw)  # the entries as posted, to find what differs
             changed = [f"{stored[name].label.lower()} (now {stored.initial.get(name) or 'empty'})"
-                       for name in stored.fields if name in stored.initial and name not in ("clinic",)
-                       and str(stored.initial.get(name) or "") != str(mine.data.get(name, "") or "")
-                       and name in mine.data]
+                       for name in changed_since(stored, based_on)]
             form.is_valid()
             form.add_error(None, "Someone else saved this record since you opened the form; nothing was saved. "
-                                 + ("Now stored differently from your form: " + "; ".join(changed) + ". "
-                                    if changed else "")
+                                 + ("Changed meanwhile: " + "; ".join(changed) + ". " if changed else "")
                                  + "Check your entries below and save again to keep them.")
             return _form_page(request, form, title, {**ctx, "based_on": now}, status=409)
         if not form.is_valid():

@@ -34,7 +34,7 @@ def test_it_refuses_a_visit_saved_from_a_form_opened_before_another_save(client,
     assert r.status_code == 409, r.status_code
     assert (v.notes, str(v.next_visit_due)) == ("", "2027-01-01")  # nothing of the stale form was saved
     html = r.content.decode()
-    assert "Someone else saved this record" in html and "next visit due (now 2027-01-01)" in html
+    assert "Someone else saved this record" in html and "Changed meanwhile: next visit due (now 2027-01-01)." in html
     assert "Risser 2, Adams forward bend positive" in html  # the clinician's entry is kept on the form
     # saving the form shown again (its version is the record's now) keeps the clinician's entries knowingly
     again = fields_of(html)
@@ -60,7 +60,7 @@ def test_it_refuses_a_patient_saved_from_a_form_opened_before_another_save(clien
 
     p.refresh_from_db()
     assert r.status_code == 409 and (p.notes, str(p.date_of_birth)) == ("", "2013-11-20"), r.status_code
-    assert "date of birth (now 2013-11-20)" in r.content.decode()
+    assert "Changed meanwhile: date of birth (now 2013-11-20)." in r.content.decode()
 
 
 @pytest.mark.django_db
