@@ -640,9 +640,9 @@ def correct_landmarks(request, visit_id):
                 xyz = []
             # finite and within a few metres of the rig: NaN or 1e300 would break the indices (and JSON)
             if len(xyz) != 3 or not all(math.isfinite(c) and abs(c) <= LANDMARK_LIMIT_MM for c in xyz):
-                return render(request, "clinic/error.html", {
-                    "message": f"{name.replace('_', ' ')}: give three numbers x y z in mm (each within "
-                               f"±{LANDMARK_LIMIT_MM:g} mm), got {raw[:80]!r}"}, status=400)
+                return _refused(request, f"{name.replace('_', ' ')}: give three numbers x y z in mm (each within "
+                                         f"±{LANDMARK_LIMIT_MM:g} mm), got {raw[:80]!r}", 400,
+                                back=reverse("visit", args=[v.pk]) + "#landmarks")
             landmarks[name] = xyz
     return _apply_landmarks(request, v, rec, lambda cur: (landmarks or None, _history_after(request, cur)))
 
@@ -1272,8 +1272,8 @@ def _once(request, make):
             if done is None:  # the first had errors (or the cache forgot it): this one is made afresh
                 return _once(request, make)
             time.sleep(0.25)
-        return _refused(request, "This form was sent twice and the first is still being saved: look at the "
-                                 "patient's page in a moment before sending it again.", 409)
+        return _refused(request, "This form was sent twice and the first is still being saved: look for what it "
+                                 "made in the patient list in a moment before sending it again.", 409)
     try:
         response = make()
     except BaseException:
