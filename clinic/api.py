@@ -843,15 +843,19 @@ def register_testfield(request, body: TestFieldIn):
 @api.post("/patients", auth=django_auth, tags=["staff"])
 def create_patient(request, body: PatientIn):
     clinic = member_clinic(request, body.clinic, roles=(Member.ADMINISTRATOR, Member.TECHNICIAN, Member.CLINICIAN))
-    exists = ApiError(409, f"patient {body.identifier!r} already exists in {clinic.name}")
+    def exists():
+        # with its id: a client whose first request's answer was lost goes on with the patient it made
+        same = Patient.objects.filter(clinic=clinic, identifier=body.identifier).values_list("pk", flat=True).first()
+        return ApiError(409, f"patient {body.identifier!r} already exists in {clinic.name} (id {same})")
+
     if Patient.objects.filter(clinic=clinic, identifier=body.identifier).exists():
-        raise exists
+        raise exists()
     try:
         with transaction.atomic():
             p = Patient.objects.create(clinic=clinic, identifier=body.identifier, name=body.name,
                                        date_of_birth=body.date_of_birth or None, sex=body.sex, notes=body.notes)
     except IntegrityError:  # made by another request since the check
-        raise exists from None
+        raise exists() from None
     return _respond(request, {"id": p.pk, "identifier": p.identifier}, 201)
 
 
