@@ -21,7 +21,6 @@ import os
 import secrets
 import struct
 import tempfile
-import time
 import zipfile
 import zlib
 import datetime as dt
@@ -29,7 +28,6 @@ from pathlib import Path, PurePosixPath
 from typing import Annotated, Literal, Optional
 
 from django.conf import settings
-from django.core.cache import cache
 from django.core.exceptions import RequestDataTooBig
 from django.core.files import File
 from django.core.files.storage import default_storage
@@ -44,7 +42,7 @@ from ninja.security import HttpBearer, django_auth
 
 from recon_engine.formats import FormatError, check_zip_members, decode_image, parse_capture_manifest, rig_from_dict
 
-from . import pipeline
+from . import once, pipeline
 from .imageheaders import HeaderError, image_size
 from .validation import (MAX_ID, MAX_INTERVAL_DAYS, MAX_NOTES, MAX_POSES, DbId, Invalid, check_capture, check_json,
                          check_length, check_param, check_rig, text)
@@ -860,6 +858,7 @@ def create_patient(request, body: PatientIn):
 
 
 IDEMPOTENCY_WAIT_S = 10.0  # how long a retry waits for the first request with its key to finish (then 503)
+IDEMPOTENCY_SECONDS = 86400  # how long a visit's Idempotency-Key is remembered
 
 
 @api.post("/patients/{patient_id}/visits", auth=django_auth, tags=["staff"])
@@ -868,33 +867,28 @@ def create_visit(request, body: VisitIn, patient_id: int = PathParam(..., ge=1, 
     if body.date is not None and patient.date_of_birth and body.date < patient.date_of_birth:
         raise ApiError(400, f"date {body.date} is before the patient's date of birth ({patient.date_of_birth})")
     # a retried request (its answer lost) sends the same Idempotency-Key: it gets the visit the first made, not a
-    # second one. Remembered in the cache (shared by the service's processes) for a day
+    # second one (clinic.once)
     key = check_param(request.headers.get("Idempotency-Key", ""), "Idempotency-Key header", 200)
     remembered = f"api-visit:{request.user.pk}:{patient.pk}:{hashlib.sha256(key.encode()).hexdigest()}"
-    if key and not cache.add(remembered, 0, 86400):  # claimed by an earlier request: its visit (once made)
-        deadline = time.monotonic() + IDEMPOTENCY_WAIT_S
-        while time.monotonic() < deadline:
-            made = cache.get(remembered)
-            if made:
-                earlier = Visit.objects.filter(pk=made, patient=patient).first()
-                if earlier is not None:
-                    return _respond(request, {"id": earlier.pk, "date": str(earlier.date)}, 200)
-            if made is None or made:  # the first failed, the cache forgot it, or its visit was erased: make one
-                break
-            time.sleep(0.25)  # 0: the first is still making it
-        else:
+    if key and not once.claim(remembered, IDEMPOTENCY_SECONDS):  # an earlier request's: its visit, once made
+        made = once.first_outcome(remembered, IDEMPOTENCY_WAIT_S)
+        if made == once.PENDING:
             raise Unavailable("the first request with this Idempotency-Key is still making its visit (retry with "
                               "the same key)")
-        cache.set(remembered, 0, 86400)
+        earlier = Visit.objects.filter(pk=made, patient=patient).first() if made else None
+        if earlier is not None:
+            return _respond(request, {"id": earlier.pk, "date": str(earlier.date)}, 200)
+        # the first failed, the cache forgot it, or its visit was erased: this request makes one
+        once.settle(remembered, once.PENDING, IDEMPOTENCY_SECONDS)
     try:
         v = Visit.objects.create(patient=patient, date=body.date or timezone.localdate(), clinician=request.user,
                                  reason=body.reason, notes=body.notes)
     except BaseException:
         if key:
-            cache.delete(remembered)
+            once.release(remembered)
         raise
     if key:
-        cache.set(remembered, v.pk, 86400)
+        once.settle(remembered, v.pk, IDEMPOTENCY_SECONDS)
     return _respond(request, {"id": v.pk, "date": str(v.date)}, 201)
 
 

@@ -17,7 +17,6 @@ import json
 import logging
 import math
 import tempfile
-import time
 import uuid
 from pathlib import Path
 
@@ -40,7 +39,7 @@ from django.urls import reverse
 from django.utils import timezone
 from django.views.decorators.http import require_http_methods, require_POST
 
-from . import api, labels, pipeline
+from . import api, labels, once, pipeline
 from .models import (CaptureSession, Comparison, Job, Member, Patient, Reconstruction, Rig, StabilityCheck, Visit,
                      captures_of, clinics_of, jobs_of)
 from .validation import MAX_NOTES, Invalid, check_param
@@ -665,13 +664,17 @@ def _history_after(request, rec) -> list:
     return [*(rec.landmark_history or []), entry][-LANDMARK_HISTORY:]
 
 
+def _short_hash(value, digits: int) -> str:
+    """The first ``digits`` hex digits of the SHA-256 of ``value`` as JSON (keys sorted, dates as text)."""
+    return hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()[:digits]
+
+
 def landmark_version(rec) -> str:
     """What a landmark form was drawn from: the torso, its landmarks and their history, and the patient frame
     its pictures were drawn in (a click is read through it). A correction posted with another torso's, after
     someone else's correction or undo, or from pictures drawn before the indices were computed again, is refused
     rather than applied over it."""
-    state = json.dumps([rec.landmarks, rec.landmark_history, (rec.indices or {}).get("frame")], sort_keys=True)
-    return f"{rec.pk}-{hashlib.sha256(state.encode()).hexdigest()[:16]}"
+    return f"{rec.pk}-{_short_hash([rec.landmarks, rec.landmark_history, (rec.indices or {}).get('frame')], 16)}"
 
 
 @login_required
@@ -826,13 +829,12 @@ def comparison(request, patient_id):
         job = pipeline.comparison_job_of(earlier, later)
         if job is not None and job.state == Job.SUCCEEDED:  # finished since the first read, or its result removed
             comp = Comparison.objects.filter(earlier=earlier, later=later).first()
-            if comp is not None:
-                return _comparison_page(request, p, earlier, later, comp, scans)
-        gone = job is not None and job.state == Job.SUCCEEDED  # its result was removed since: compare again
+            job = None  # (removed: the page offers to compare again)
+    if comp is None:
         return render(request, "clinic/comparison_progress.html", {
-            **patient_context(p), "job": None if gone else job, "earlier": earlier, "later": later,
+            **patient_context(p), "job": job, "earlier": earlier, "later": later,
             "repeat": earlier.session.visit_id == later.session.visit_id,
-            "waited": int((timezone.now() - job.dispatched).total_seconds()) if job and not gone else None,
+            "waited": int((timezone.now() - job.dispatched).total_seconds()) if job else None,
             "error": _job_error_words(job) if job and job.state == Job.FAILED else None})
     return _comparison_page(request, p, earlier, later, comp, scans)
 
@@ -965,24 +967,20 @@ def issue_rig_key(request, serial):
     r = get_object_or_404(Rig.objects.filter(clinic__in=clinics_of(request.user)), serial=serial)
     _require_role(request, r.clinic_id)  # as the API's (before a repeat revokes anything)
     revoked = None
-    token = request.POST.get("form_token", "")
-    key = f"form-once:{request.user.pk}:{token}" if 8 <= len(token) <= 64 and token.isalnum() else None
-    if key is not None and not cache.add(key, "", FORM_TOKEN_SECONDS):
-        for _ in range(40):  # the first post may still be issuing its key
-            earlier = cache.get(key)
-            if earlier != "":
-                break
-            time.sleep(0.25)
+    token = _posted_token(request)
+    key = f"form-once:{request.user.pk}:{token}" if token else None
+    if key is not None and not once.claim(key, FORM_TOKEN_SECONDS):
+        earlier = once.first_outcome(key)  # the prefix of the key the first post issued
         if earlier and r.keys.filter(prefix=earlier, revoked__isnull=True).update(revoked=timezone.now()):
             revoked = earlier
     try:
         issued = _run_api(api.new_rig_key, request, serial)
     except BaseException:
         if key is not None:
-            cache.delete(key)
+            once.release(key)
         raise
     if key is not None:
-        cache.set(key, issued["key"][:10], FORM_TOKEN_SECONDS)  # its prefix (RigKey.issue)
+        once.settle(key, issued["key"][:10], FORM_TOKEN_SECONDS)  # its prefix (RigKey.issue)
     return _rig_page(request, r, new_key=issued["key"], replaced_key=revoked)
 
 
@@ -1248,11 +1246,16 @@ def _form_page(request, form, title, context=None, status=200):
 FORM_TOKEN_SECONDS = 3600  # how long a form's one-time token is remembered (a double click, a re-post, a reload)
 
 
+def _posted_token(request) -> str | None:
+    """The one-time token the posted form carries, or None (an old page, a script, a malformed one)."""
+    posted = request.POST.get("form_token", "")
+    return posted if 8 <= len(posted) <= 64 and posted.isalnum() else None
+
+
 def _form_token(request) -> str:
     """The one-time token a creating form carries: the posted one (a form shown again with its errors keeps it)
     or a new one."""
-    posted = request.POST.get("form_token", "")
-    return posted if 8 <= len(posted) <= 64 and posted.isalnum() else uuid.uuid4().hex
+    return _posted_token(request) or uuid.uuid4().hex
 
 
 def _once(request, make):
@@ -1260,37 +1263,34 @@ def _once(request, make):
     browser re-posting after a slow answer, a reload of the answer) is sent where the first one's answer went
     instead of making a second patient or visit. A form whose answer was not a redirect (it had errors) may be
     posted again. The tokens live in the cache, which production shares between processes (CACHE_URL)."""
-    token = request.POST.get("form_token", "")
-    if not (8 <= len(token) <= 64 and token.isalnum()):
+    token = _posted_token(request)
+    if token is None:
         return make()  # no token (an old page, a script): as before
     key = f"form-once:{request.user.pk}:{token}"
-    if not cache.add(key, "", FORM_TOKEN_SECONDS):
-        for _ in range(40):  # the first post may still be saving: wait for where it went (at most about 10 s)
-            done = cache.get(key)
-            if done:
-                return redirect(done)
-            if done is None:  # the first had errors (or the cache forgot it): this one is made afresh
-                return _once(request, make)
-            time.sleep(0.25)
+    if not once.claim(key, FORM_TOKEN_SECONDS):
+        done = once.first_outcome(key)  # where the first post went, once it is saved
+        if done is None:  # the first had errors (or the cache forgot it): this one is made afresh
+            return _once(request, make)
+        if done:
+            return redirect(done)
         return _refused(request, "This form was sent twice and the first is still being saved: look for what it "
                                  "made in the patient list in a moment before sending it again.", 409)
     try:
         response = make()
     except BaseException:
-        cache.delete(key)
+        once.release(key)
         raise
     if response.status_code == 302:
-        cache.set(key, response["Location"], FORM_TOKEN_SECONDS)
+        once.settle(key, response["Location"], FORM_TOKEN_SECONDS)
     else:
-        cache.delete(key)
+        once.release(key)
     return response
 
 
 def record_version(form) -> str:
     """What an edit form was drawn from: a short hash of each field's value as stored then, in the form's field
     order (so that a refused save can name the fields someone else changed)."""
-    return ".".join(hashlib.sha256(json.dumps(form.initial.get(name), default=str).encode()).hexdigest()[:8]
-                    for name in form.fields)
+    return ".".join(_short_hash(form.initial.get(name), 8) for name in form.fields)
 
 
 def changed_since(form, based_on: str) -> list:
